@@ -1,0 +1,175 @@
+"""Observation vectors to signatures, in mono and colour mode.
+
+A stack is a float32 array of shape (m, H, W, c): m images (one per lighting
+condition), c colour bands, linear pixel values. The observation vector (OV) of
+band k at pixel p is ``stack[:, y, x, k]`` in R^m; its signature is the OV divided
+by its Euclidean norm.
+
+=========  ===============================================================
+mode       signature of a pixel
+=========  ===============================================================
+"colour"   each band's OV normalised separately, the c unit vectors
+           concatenated band-major: (s_band0[0..m-1], s_band1[0..m-1], ...)
+           in R^(c*m); every band block has unit norm.
+"mono"     one band in R^m: a chosen channel, or the luminance Y computed with
+           colour-science from the stack's RGB colourspace (sRGB / Rec. 709
+           primaries by default).
+=========  ===============================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ._checks import check_stack
+from .errors import InputError
+
+__all__ = ["SignatureSet", "compute_signatures", "luminance", "DEFAULT_MIN_NORM"]
+
+#: Default smallest OV norm (linear units, 0..1 scale) that is normalised.
+DEFAULT_MIN_NORM = 1e-4
+
+
+@dataclass(frozen=True)
+class SignatureSet:
+    """Signatures of every pixel of a stack.
+
+    Attributes
+    ----------
+    signatures : (H, W, B * m) ndarray of float32
+        Band-major concatenation of per-band unit signatures; zero where the
+        pixel is invalid.
+    norms : (H, W, B) ndarray of float32
+        Euclidean norm of each band's OV (needed for albedo, eq. 6).
+    valid : (H, W) ndarray of bool
+        True where every band's OV norm exceeds ``min_norm`` (and is finite).
+    band_valid : (H, W, B) ndarray of bool
+        The same test per band.
+    mode : {"colour", "mono"}
+    bands : int
+        Number of bands B in the signature (c in colour mode, 1 in mono mode).
+    images : int
+        Number of images m.
+    """
+
+    signatures: np.ndarray
+    norms: np.ndarray
+    valid: np.ndarray
+    band_valid: np.ndarray
+    mode: str
+    bands: int
+    images: int
+
+
+def luminance(stack, colourspace: str = "sRGB") -> np.ndarray:
+    """Relative luminance Y of each RGB pixel of a stack, using colour-science.
+
+    Parameters
+    ----------
+    stack : (..., 3) array_like
+        Linear RGB values.
+    colourspace : str, optional
+        Name of a colour-science RGB colourspace (default "sRGB", Rec. 709
+        primaries, D65).
+
+    Returns
+    -------
+    (...) ndarray of float32
+    """
+    import colour
+
+    rgb = np.asarray(stack, dtype=np.float32)
+    if rgb.shape[-1] != 3:
+        raise InputError(f"luminance needs 3 (RGB) bands, got {rgb.shape[-1]}")
+    try:
+        space = colour.RGB_COLOURSPACES[colourspace]
+    except KeyError:
+        raise InputError(f"colourspace: unknown RGB colourspace {colourspace!r}") from None
+    # The Y row of the colourspace's normative RGB -> XYZ matrix, as used by
+    # colour.RGB_to_XYZ.
+    weights = np.asarray(space.matrix_RGB_to_XYZ[1], dtype=np.float32)
+    return rgb @ weights
+
+
+def _mono_band(stack: np.ndarray, band: int | Literal["luminance"] | None,
+               colourspace: str) -> np.ndarray:
+    c = stack.shape[-1]
+    if band is None:
+        band = "luminance" if c == 3 else 0
+    if isinstance(band, str):
+        if band != "luminance":
+            raise InputError(f"band: expected a channel index or 'luminance', got {band!r}")
+        return luminance(stack, colourspace)[..., np.newaxis]
+    if isinstance(band, bool) or not isinstance(band, (int, np.integer)) or not 0 <= band < c:
+        raise InputError(f"band: expected a channel index in 0..{c - 1}, got {band!r}")
+    return stack[..., band:band + 1]
+
+
+def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
+                       band: int | Literal["luminance"] | None = None,
+                       colourspace: str = "sRGB",
+                       min_norm: float = DEFAULT_MIN_NORM) -> SignatureSet:
+    """Normalise the observation vectors of a stack into signatures.
+
+    Parameters
+    ----------
+    stack : (m, H, W, c) or (m, H, W) array_like
+        Linear pixel values of m images.
+    mode : {"colour", "mono"}, optional
+        Colour: one unit vector per band, concatenated band-major. Mono: a single
+        band (see ``band``).
+    band : int or "luminance", optional
+        Mono mode only: the channel to use, or luminance (the default for 3-band
+        stacks; single-band stacks use channel 0).
+    colourspace : str, optional
+        RGB colourspace of the stack for luminance (colour-science name).
+    min_norm : float, optional
+        A band's OV whose Euclidean norm is at most this (linear units) cannot be
+        normalised: the pixel is reported invalid, never turned into NaN.
+
+    Returns
+    -------
+    SignatureSet
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from colorps import compute_signatures
+    >>> stack = np.ones((4, 2, 2, 3), dtype=np.float32)   # m=4, 2x2 px, RGB
+    >>> sig = compute_signatures(stack, "colour")
+    >>> sig.signatures.shape, float(sig.signatures[0, 0, :4] @ sig.signatures[0, 0, :4])
+    ((2, 2, 12), 1.0)
+    """
+    data = check_stack(stack)
+    m = data.shape[0]
+    if mode == "colour":
+        bands = data
+    elif mode == "mono":
+        bands = _mono_band(data, band, colourspace)
+    else:
+        raise InputError(f"mode: expected 'colour' or 'mono', got {mode!r}")
+    if not np.isfinite(min_norm) or min_norm < 0:
+        raise InputError(f"min_norm: expected a finite value >= 0, got {min_norm!r}")
+
+    ov = np.moveaxis(bands, 0, -1)  # (H, W, B, m)
+    finite = np.isfinite(ov).all(axis=-1)
+    ov = np.where(finite[..., None], ov, 0.0).astype(np.float32)
+    norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
+    band_valid = finite & (norms > min_norm)
+    safe = np.where(band_valid, norms, 1.0)
+    sig = np.where(band_valid[..., None], ov / safe[..., None], 0.0).astype(np.float32)
+    h, w, b = band_valid.shape
+    valid = band_valid.all(axis=-1)
+    sig[~valid] = 0.0
+    return SignatureSet(
+        signatures=np.ascontiguousarray(sig.reshape(h, w, b * m)),
+        norms=norms.astype(np.float32),
+        valid=valid,
+        band_valid=band_valid,
+        mode=mode,
+        bands=b,
+        images=m,
+    )

@@ -1,0 +1,292 @@
+"""Synthetic scenes and gauges with ground truth (tests, sample data, benchmarks).
+
+Everything is orthographic, with distant lights, in the project's conventions:
+pixel (x, y) = (column, row); camera space x right, y up, z towards the camera.
+Pixel values are linear radiance on a 0..1 scale.
+
+Lighting is given per image as a set of distant lights, each with a unit
+direction (pointing from the surface towards the light) and a colour (one
+intensity per band), so an image may be lit by one white light, one coloured
+light, or several lights of different colours at once.
+
+BRDFs: ``"lambert"`` and ``"oren-nayar"`` (the qualitative Oren-Nayar model, a
+broad rough-diffuse lobe). Both are the albedo of the band times one fixed
+shape, as gauge-based photometric stereo requires. Attached shadows are
+modelled (cos < 0 gives 0); cast shadows and interreflections are not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = [
+    "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
+    "render", "BRDFS",
+]
+
+BRDFS = ("lambert", "oren-nayar")
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """Distant lights of an m-image capture.
+
+    Attributes
+    ----------
+    directions : (m, L, 3) ndarray of float64
+        Unit vectors towards each of the L lights of each image (camera space).
+    colours : (m, L, c) ndarray of float64
+        Intensity of each light in each band (0 switches a light off).
+    """
+
+    directions: np.ndarray
+    colours: np.ndarray
+
+    @property
+    def images(self) -> int:
+        return self.directions.shape[0]
+
+    @property
+    def bands(self) -> int:
+        return self.colours.shape[2]
+
+
+@dataclass(frozen=True)
+class SyntheticSurface:
+    """A rendered-to-be surface with ground truth.
+
+    Attributes
+    ----------
+    normals : (H, W, 3) ndarray of float64
+        Camera-space unit normals (0 outside the mask).
+    mask : (H, W) ndarray of bool
+        Pixels on the surface.
+    albedo : (H, W, c) ndarray of float64
+        Intrinsic albedo per band (linear, 0..1).
+    height : (H, W) ndarray of float64
+        Height z in pixel units (NaN outside the mask).
+    """
+
+    normals: np.ndarray
+    mask: np.ndarray
+    albedo: np.ndarray
+    height: np.ndarray
+
+
+def ring_lights(m: int, theta_deg: float, colours=None, *, bands: int = 3,
+                azimuth0_deg: float = 0.0) -> Lighting:
+    """One distant light per image, at angle ``theta_deg`` from the view direction.
+
+    Azimuths are evenly spaced around the view axis.
+
+    Parameters
+    ----------
+    m : int
+        Number of images (lights).
+    theta_deg : float
+        Angle between each light and the z axis (degrees).
+    colours : (m, c) array_like, optional
+        Colour of each light; white (all ones in ``bands`` bands) by default.
+    bands : int, optional
+        Number of bands of white lights.
+    azimuth0_deg : float, optional
+        Azimuth of the first light (degrees, from +x towards +y).
+    """
+    if m < 1:
+        raise InputError(f"m: expected at least 1 light, got {m}")
+    phi = np.deg2rad(azimuth0_deg) + 2 * np.pi * np.arange(m) / m
+    theta = np.deg2rad(theta_deg)
+    directions = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                           np.full(m, np.cos(theta))], axis=1)
+    if colours is None:
+        colours = np.ones((m, bands))
+    colours = np.asarray(colours, dtype=np.float64)
+    if colours.shape[0] != m or colours.ndim != 2:
+        raise InputError(f"colours: expected shape ({m}, c), got {colours.shape}")
+    return Lighting(directions[:, None, :], colours[:, None, :])
+
+
+def _shade(normals: np.ndarray, light: np.ndarray, brdf: str, roughness: float) -> np.ndarray:
+    """BRDF shape times cosine for one light, view along +z (values >= 0)."""
+    cos_i = normals @ light
+    lit = np.maximum(cos_i, 0.0)
+    if brdf == "lambert":
+        return lit
+    s2 = roughness ** 2
+    a = 1.0 - 0.5 * s2 / (s2 + 0.33)
+    b = 0.45 * s2 / (s2 + 0.09)
+    cos_r = np.clip(normals[..., 2], 0.0, 1.0)
+    theta_i = np.arccos(np.clip(cos_i, -1.0, 1.0))
+    theta_r = np.arccos(cos_r)
+    alpha = np.maximum(theta_i, theta_r)
+    beta = np.minimum(theta_i, theta_r)
+    # cos of the azimuth difference: light and view projected on the tangent plane.
+    lt = light - cos_i[..., None] * normals
+    vt = np.array([0.0, 0.0, 1.0]) - cos_r[..., None] * normals
+    norm = np.linalg.norm(lt, axis=-1) * np.linalg.norm(vt, axis=-1)
+    cos_phi = np.where(norm > 1e-12, (lt * vt).sum(-1) / np.maximum(norm, 1e-12), 0.0)
+    return lit * (a + b * np.maximum(cos_phi, 0.0) * np.sin(alpha) * np.tan(beta))
+
+
+def render(surface: SyntheticSurface, lighting: Lighting, *,
+           brdf: Literal["lambert", "oren-nayar"] = "lambert", roughness: float = 0.5,
+           noise: float = 0.0, seed: int | None = 0) -> np.ndarray:
+    """Render an image stack of a surface.
+
+    Parameters
+    ----------
+    surface : SyntheticSurface
+    lighting : Lighting
+        Its band count must match the surface albedo's.
+    brdf : {"lambert", "oren-nayar"}, optional
+    roughness : float, optional
+        Oren-Nayar roughness sigma (radians).
+    noise : float, optional
+        Standard deviation of additive Gaussian noise (0..1 scale); results are
+        clipped at 0.
+    seed : int, optional
+        Noise seed.
+
+    Returns
+    -------
+    (m, H, W, c) ndarray of float32
+        Linear pixel values; 0 outside the surface mask.
+    """
+    if brdf not in BRDFS:
+        raise InputError(f"brdf: expected one of {BRDFS}, got {brdf!r}")
+    c = surface.albedo.shape[-1]
+    if lighting.bands != c:
+        raise InputError(f"lighting has {lighting.bands} bands but the albedo has {c}")
+    m = lighting.images
+    h, w = surface.mask.shape
+    stack = np.zeros((m, h, w, c), dtype=np.float64)
+    n = surface.normals[surface.mask]
+    alb = surface.albedo[surface.mask]
+    for k in range(m):
+        value = np.zeros_like(alb)
+        for light, colour in zip(lighting.directions[k], lighting.colours[k]):
+            value += _shade(n, light, brdf, roughness)[:, None] * colour[None, :]
+        stack[k][surface.mask] = value * alb
+    if noise > 0:
+        rng = np.random.default_rng(seed)
+        stack += rng.normal(0.0, noise, size=stack.shape)
+        np.maximum(stack, 0.0, out=stack)
+    return stack.astype(np.float32)
+
+
+def sphere_surface(size: int | tuple[int, int], radius: float, centre=None,
+                   albedo=1.0, *, bands: int = 3) -> SyntheticSurface:
+    """A sphere seen orthographically (the usual gauge).
+
+    Parameters
+    ----------
+    size : int or (H, W)
+        Image size in pixels.
+    radius : float
+        Sphere radius r in pixels.
+    centre : (cx, cy), optional
+        Centre in pixel coordinates (default: image centre).
+    albedo : float or (c,) array_like
+        Uniform albedo (per band).
+
+    Notes
+    -----
+    n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx^2 - ny^2)) inside the disk.
+    """
+    h, w = (size, size) if np.isscalar(size) else size
+    if centre is None:
+        centre = ((w - 1) / 2.0, (h - 1) / 2.0)
+    cx, cy = centre
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    nx = (x - cx) / radius
+    ny = -(y - cy) / radius
+    rho2 = nx * nx + ny * ny
+    mask = rho2 < 1.0
+    nz = np.sqrt(np.clip(1.0 - rho2, 0.0, None))
+    normals = np.where(mask[..., None], np.stack([nx, ny, nz], axis=-1), 0.0)
+    alb = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (bands,))
+    albedo_map = np.where(mask[..., None], alb, 0.0)
+    height = np.where(mask, radius * nz, np.nan)
+    return SyntheticSurface(normals, mask, albedo_map, height)
+
+
+def _smiley_slopes(X, Y, relief):
+    """Height f(X, Y) and its gradient, in units of the face radius."""
+    base2 = np.clip(1.0 - X * X - Y * Y, 1e-12, None)
+    f = np.sqrt(base2)
+    fx = -X / f
+    fy = -Y / f
+    # Convex eyes: Gaussian bumps.
+    s = 0.09
+    for ex in (-0.33, 0.33):
+        g = relief * np.exp(-((X - ex) ** 2 + (Y - 0.28) ** 2) / (2 * s * s))
+        f = f + g
+        fx = fx - g * (X - ex) / (s * s)
+        fy = fy - g * (Y - 0.28) / (s * s)
+    # Concave mouth: a Gaussian groove along the smile curve Y = -0.42 + 0.7 X^2.
+    c = -0.42 + 0.7 * X * X
+    dc = 1.4 * X
+    sm, wm = 0.07, 0.3
+    g = -0.8 * relief * np.exp(-((Y - c) ** 2) / (2 * sm * sm) - X * X / (2 * wm * wm))
+    f = f + g
+    fx = fx + g * ((Y - c) * dc / (sm * sm) - X / (wm * wm))
+    fy = fy + g * (-(Y - c) / (sm * sm))
+    return f, fx, fy
+
+
+def smiley_surface(size: int | tuple[int, int] = 256, *, radius: float | None = None,
+                   relief: float = 0.12, coloured: bool = True, bands: int = 3,
+                   rim: float = 0.97) -> SyntheticSurface:
+    """The paper's test scene: a hemispherical smiley mask.
+
+    Convex eyes and a concave mouth in low relief on a hemisphere, with (by
+    default) a coloured albedo map that has saturated regions.
+
+    Parameters
+    ----------
+    size : int or (H, W)
+        Image size in pixels.
+    radius : float, optional
+        Face radius in pixels (default: 0.47 of the smaller image side).
+    relief : float, optional
+        Height of the eyes (the mouth is 0.8 of it deep), in face radii.
+    coloured : bool, optional
+        Coloured albedo (a skin-like base, saturated blue eyes, saturated red
+        mouth, a green band across the forehead) instead of uniform grey 0.7.
+    bands : int, optional
+        Number of albedo bands (the colour map needs 3).
+    rim : float, optional
+        Keep pixels within this fraction of the radius (steep rim excluded).
+    """
+    h, w = (size, size) if np.isscalar(size) else size
+    radius = 0.47 * min(h, w) if radius is None else radius
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    X = (x - cx) / radius
+    Y = -(y - cy) / radius
+    mask = X * X + Y * Y < rim * rim
+    f, fx, fy = _smiley_slopes(X, Y, relief)
+    n = np.stack([-fx, -fy, np.ones_like(f)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    normals = np.where(mask[..., None], n, 0.0)
+    height = np.where(mask, radius * f, np.nan)
+    if coloured:
+        if bands != 3:
+            raise InputError("coloured smiley albedo needs bands=3")
+        alb = np.empty((h, w, 3))
+        alb[:] = (0.80, 0.55, 0.40)
+        eyes = np.minimum((X + 0.33) ** 2, (X - 0.33) ** 2) + (Y - 0.28) ** 2 < 0.12 ** 2
+        mouth = (np.abs(Y - (-0.42 + 0.7 * X * X)) < 0.09) & (np.abs(X) < 0.5)
+        band = np.abs(Y - 0.62) < 0.06
+        alb[eyes] = (0.06, 0.12, 0.85)
+        alb[mouth] = (0.85, 0.06, 0.05)
+        alb[band] = (0.10, 0.70, 0.15)
+    else:
+        alb = np.full((h, w, bands), 0.7)
+    albedo = np.where(mask[..., None], alb, 0.0)
+    return SyntheticSurface(normals, mask, albedo, height)

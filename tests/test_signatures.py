@@ -1,0 +1,76 @@
+import colour
+import numpy as np
+import pytest
+
+from colorps import InputError, compute_signatures, luminance
+
+
+def test_colour_layout_is_band_major(rng):
+    stack = rng.uniform(0.1, 1.0, (5, 4, 6, 3)).astype(np.float32)
+    sig = compute_signatures(stack, "colour")
+    assert sig.signatures.shape == (4, 6, 15) and sig.bands == 3 and sig.images == 5
+    for band in range(3):
+        ov = stack[:, 2, 3, band]
+        np.testing.assert_allclose(sig.signatures[2, 3, 5 * band:5 * band + 5],
+                                   ov / np.linalg.norm(ov), rtol=1e-6)
+        np.testing.assert_allclose(sig.norms[2, 3, band], np.linalg.norm(ov), rtol=1e-6)
+    blocks = sig.signatures.reshape(4, 6, 3, 5)
+    np.testing.assert_allclose(np.linalg.norm(blocks, axis=-1), 1.0, rtol=1e-6)
+    assert sig.valid.all()
+
+
+def test_invalid_pixels_are_masked_not_nan(rng):
+    stack = rng.uniform(0.1, 1.0, (4, 3, 3, 3)).astype(np.float32)
+    stack[:, 0, 0, 1] = 0.0          # one band dark
+    stack[:, 1, 1, :] = 0.0          # all dark
+    stack[2, 2, 2, 0] = np.nan       # non-finite measurement
+    stack[:, 0, 2, 2] = 1e-6         # below min_norm
+    sig = compute_signatures(stack, "colour")
+    assert np.isfinite(sig.signatures).all()
+    expected = np.ones((3, 3), bool)
+    expected[0, 0] = expected[1, 1] = expected[2, 2] = expected[0, 2] = False
+    np.testing.assert_array_equal(sig.valid, expected)
+    assert sig.band_valid[0, 0].tolist() == [True, False, True]
+    assert (sig.signatures[~sig.valid] == 0).all()
+    assert np.isfinite(sig.norms).all()
+
+
+def test_mono_luminance_matches_colour_science(rng):
+    stack = rng.uniform(0.0, 1.0, (3, 5, 5, 3)).astype(np.float32)
+    y = colour.RGB_to_XYZ(stack.astype(np.float64), colour.RGB_COLOURSPACES["sRGB"],
+                          apply_cctf_decoding=False)[..., 1]
+    np.testing.assert_allclose(luminance(stack), y, rtol=1e-5, atol=1e-7)
+    sig = compute_signatures(stack, "mono")
+    ov = y[:, 1, 2]
+    np.testing.assert_allclose(sig.signatures[1, 2], ov / np.linalg.norm(ov), rtol=1e-5)
+    assert sig.bands == 1 and sig.signatures.shape == (5, 5, 3)
+    wide = compute_signatures(stack, "mono", colourspace="ITU-R BT.2020")
+    assert not np.allclose(wide.norms, sig.norms)
+
+
+def test_mono_channel_and_single_band(rng):
+    stack = rng.uniform(0.1, 1.0, (4, 2, 2, 3)).astype(np.float32)
+    sig = compute_signatures(stack, "mono", band=2)
+    ov = stack[:, 0, 1, 2]
+    np.testing.assert_allclose(sig.signatures[0, 1], ov / np.linalg.norm(ov), rtol=1e-6)
+    grey = compute_signatures(stack[..., 0], "mono")  # (m, H, W) stack
+    assert grey.signatures.shape == (2, 2, 4)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(mode="rgb"), "mode"),
+    (dict(mode="mono", band=3), "band"),
+    (dict(mode="mono", band="green"), "band"),
+    (dict(mode="mono", colourspace="nope"), "colourspace"),
+    (dict(min_norm=-1.0), "min_norm"),
+])
+def test_bad_arguments(kwargs, message):
+    with pytest.raises(InputError, match=message):
+        compute_signatures(np.ones((3, 2, 2, 3), np.float32), **kwargs)
+
+
+def test_bad_stacks():
+    with pytest.raises(InputError, match="shape"):
+        compute_signatures(np.ones((3, 2)))
+    with pytest.raises(InputError, match="empty"):
+        compute_signatures(np.ones((0, 2, 2, 3)))
