@@ -7,7 +7,10 @@ y up, z towards the camera; all arithmetic on linear pixel values.
 from importlib.metadata import PackageNotFoundError, version
 
 from .errors import ColorPSError, GaugeError, ImageReadError, InputError, OutputError
+from . import synth
+from .gauge import Gauge, find_sphere
 from .grid import BucketGrid, QueryStats
+from .reconstruct import Reconstruction, reconstruct
 from .signatures import SignatureSet, compute_signatures, luminance
 
 try:
@@ -16,7 +19,8 @@ except PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0+unknown"
 
 __all__ = [
-    "BucketGrid", "QueryStats", "SignatureSet", "compute_signatures", "luminance",
+    "BucketGrid", "QueryStats", "Gauge", "find_sphere", "Reconstruction", "reconstruct",
+    "synth", "SignatureSet", "compute_signatures", "luminance",
     "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",
     "__version__",
 ]

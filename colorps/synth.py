@@ -26,7 +26,7 @@ from .errors import InputError
 
 __all__ = [
     "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
-    "render", "BRDFS",
+    "render", "BRDFS", "mixed_lights", "write_synthetic",
 ]
 
 BRDFS = ("lambert", "oren-nayar")
@@ -290,3 +290,78 @@ def smiley_surface(size: int | tuple[int, int] = 256, *, radius: float | None = 
         alb = np.full((h, w, bands), 0.7)
     albedo = np.where(mask[..., None], alb, 0.0)
     return SyntheticSurface(normals, mask, albedo, height)
+
+
+def mixed_lights(m: int, theta_deg: float = 45.0) -> Lighting:
+    """Two lights of different colours per image, 2m distinct directions.
+
+    Each image is lit at once by a warm light (1, 0.5, 0.05) and a cool light
+    (0.05, 0.5, 1), from different directions; the pairs rotate from image to
+    image. Colour mode separates them by band, mono mode cannot.
+    """
+    ring = ring_lights(2 * m, theta_deg).directions[:, 0, :]
+    directions = np.stack([ring[0::2], ring[1::2]], axis=1)
+    warm, cool = (1.0, 0.5, 0.05), (0.05, 0.5, 1.0)
+    colours = np.array([[warm, cool] if k % 2 == 0 else [cool, warm] for k in range(m)])
+    return Lighting(directions, colours)
+
+
+def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float = 45.0,
+                    lights: Literal["white", "colour", "mixed"] = "white",
+                    brdf: Literal["lambert", "oren-nayar"] = "lambert", noise: float = 0.0,
+                    gauge_radius: float = 100.0, seed: int = 0) -> dict:
+    """Render a smiley scene and a sphere gauge to EXR stacks with ground truth.
+
+    Writes ``scene_NN.exr`` and ``gauge_NN.exr`` (half float, linear RGB),
+    ``mask.png`` (the object mask a user would draw, for ``--mask``),
+    ``truth_normal.exr``, ``truth_albedo.exr``, ``truth_mask.png`` and
+    ``sample.json`` (every parameter, the light directions and colours, and the
+    gauge sphere geometry) into ``out_dir``.
+
+    Returns
+    -------
+    dict
+        The content of sample.json.
+    """
+    import json
+    from pathlib import Path
+
+    from .io import write_image
+
+    if lights == "white":
+        lighting = ring_lights(images, theta)
+    elif lights == "colour":
+        phase = 2 * np.pi * np.arange(images) / images
+        hue = 0.5 + 0.5 * np.cos(phase[:, None] - np.array([0.0, 2.0, 4.0]) * np.pi / 3)
+        lighting = ring_lights(images, theta, 0.1 + 0.9 * hue)
+    elif lights == "mixed":
+        lighting = mixed_lights(images, theta)
+    else:
+        raise InputError(f"lights: expected 'white', 'colour' or 'mixed', got {lights!r}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = smiley_surface(size)
+    gsize = int(np.ceil(2 * gauge_radius + 10))
+    gauge = sphere_surface(gsize, gauge_radius)
+    scene_stack = render(scene, lighting, brdf=brdf, noise=noise, seed=seed)
+    gauge_stack = render(gauge, lighting, brdf=brdf, noise=noise, seed=seed + 1)
+    for k in range(images):
+        write_image(out / f"scene_{k:02d}.exr", scene_stack[k], dtype="half",
+                    channel_names=["R", "G", "B"])
+        write_image(out / f"gauge_{k:02d}.exr", gauge_stack[k], dtype="half",
+                    channel_names=["R", "G", "B"])
+    normals = np.where(scene.mask[..., None], scene.normals, np.nan)
+    write_image(out / "truth_normal.exr", normals, channel_names=["X", "Y", "Z"])
+    write_image(out / "truth_albedo.exr", np.where(scene.mask[..., None], scene.albedo, np.nan),
+                channel_names=["R", "G", "B"])
+    write_image(out / "truth_mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    write_image(out / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    centre = (gsize - 1) / 2.0
+    info = dict(
+        made_by="colorps synth", size=size, images=images, theta_deg=theta, lights=lights,
+        brdf=brdf, noise=noise, seed=seed, gauge_albedo=1.0,
+        gauge_sphere=dict(cx=centre, cy=centre, r=gauge_radius),
+        light_directions=lighting.directions.tolist(), light_colours=lighting.colours.tolist(),
+    )
+    (out / "sample.json").write_text(json.dumps(info, indent=1))
+    return info

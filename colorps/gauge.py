@@ -1,0 +1,173 @@
+"""The gauge: an object of known normals and albedo, usually a sphere.
+
+Sphere geometry under orthographic view, in pixel coordinates (x = column,
+y = row, pixel centres at integers), centre (cx, cy) and radius r in pixels::
+
+    n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx^2 - ny^2))
+
+(camera space: x right, y up, z towards the camera). Only pixels safely inside
+the rim are used: at the rim the normal changes fastest per pixel and pixels
+mix sphere and background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import GaugeError, InputError
+
+__all__ = ["Gauge", "find_sphere", "parse_albedo"]
+
+
+def parse_albedo(albedo, bands: int) -> np.ndarray:
+    """Gauge albedo as one positive value per band (a scalar applies to all)."""
+    try:
+        values = np.atleast_1d(np.asarray(albedo, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise GaugeError(f"gauge albedo: expected a number or one per band, got {albedo!r}") from None
+    if values.ndim != 1 or values.size not in (1, bands):
+        raise GaugeError(f"gauge albedo: expected 1 or {bands} values, got {values.size}")
+    if not np.all(np.isfinite(values)) or np.any(values <= 0):
+        raise GaugeError(f"gauge albedo: values must be finite and > 0, got {values.tolist()}")
+    return np.broadcast_to(values, (bands,)).copy()
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """Known normals of a gauge image and its albedo.
+
+    Attributes
+    ----------
+    normals : (H, W, 3) ndarray of float32
+        Camera-space unit normals (anything outside ``mask``).
+    mask : (H, W) ndarray of bool
+        Gauge pixels used for the signature table.
+    albedo : float or (c,) array_like
+        Intrinsic albedo G* of the gauge (one value, or one per band).
+    sphere : (cx, cy, r) or None
+        Sphere geometry when the gauge is a sphere.
+    """
+
+    normals: np.ndarray
+    mask: np.ndarray
+    albedo: object = 1.0
+    sphere: tuple[float, float, float] | None = None
+
+    def __post_init__(self):
+        normals = np.asarray(self.normals, dtype=np.float32)
+        mask = np.asarray(self.mask, dtype=bool)
+        if normals.ndim != 3 or normals.shape[2] != 3 or mask.shape != normals.shape[:2]:
+            raise GaugeError(
+                f"gauge: normals must be (H, W, 3) and mask (H, W); got {normals.shape} "
+                f"and {mask.shape}")
+        if not mask.any():
+            raise GaugeError("gauge: the mask selects no pixel")
+        object.__setattr__(self, "normals", normals)
+        object.__setattr__(self, "mask", mask)
+
+    @classmethod
+    def from_sphere(cls, shape: tuple[int, int], cx: float, cy: float, radius: float,
+                    albedo=1.0, *, rim_margin: float | None = None) -> "Gauge":
+        """A sphere gauge of centre (cx, cy) and radius ``radius`` (pixels).
+
+        Parameters
+        ----------
+        shape : (H, W)
+            Size of the gauge images.
+        cx, cy, radius : float
+            Sphere silhouette in pixel coordinates.
+        albedo : float or (c,) array_like
+        rim_margin : float, optional
+            Pixels closer than this to the rim are left out (pixels; default
+            ``max(2, 0.02 * radius)``).
+
+        Raises
+        ------
+        GaugeError
+            When the sphere is not entirely inside the image, or too small.
+        """
+        h, w = shape
+        values = np.array([cx, cy, radius], dtype=np.float64)
+        if not np.all(np.isfinite(values)) or radius <= 0:
+            raise GaugeError(f"sphere: centre and radius must be finite, radius > 0; got "
+                             f"{cx}, {cy}, {radius}")
+        if cx - radius < -0.5 or cy - radius < -0.5 or cx + radius > w - 0.5 or \
+                cy + radius > h - 0.5:
+            raise GaugeError(
+                f"sphere: circle at ({cx:g}, {cy:g}) with radius {radius:g} is partly "
+                f"outside the {w}x{h} gauge image")
+        if radius < 8:
+            raise GaugeError(f"sphere: radius {radius:g} px is too small for a useful "
+                             f"table (need at least 8 px; 100+ px recommended)")
+        margin = max(2.0, 0.02 * radius) if rim_margin is None else float(rim_margin)
+        y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+        nx = (x - cx) / radius
+        ny = -(y - cy) / radius
+        rho = np.hypot(nx, ny)
+        mask = rho <= 1.0 - margin / radius
+        nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, None))
+        normals = np.stack([nx, ny, nz], axis=-1)
+        normals[~mask] = 0.0
+        return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)))
+
+
+def find_sphere(stack) -> tuple[float, float, float]:
+    """Find the gauge sphere's silhouette in a gauge stack.
+
+    The images are summed (every lit part of the sphere shows in some image),
+    the sphere is segmented with a low threshold (5 % of the bright level; the
+    background is assumed darker), and a circle is fitted robustly with
+    scikit-image (RANSAC over ``CircleModel``) to the subpixel boundary of the
+    largest region.
+
+    Parameters
+    ----------
+    stack : (m, H, W, c) array_like
+        Linear gauge images.
+
+    Returns
+    -------
+    (cx, cy, r) : tuple of float
+        Pixel coordinates (x = column, y = row) and radius in pixels.
+
+    Raises
+    ------
+    GaugeError
+        When no convincing circle is found.
+    """
+    from skimage import measure
+
+    data = np.asarray(stack, dtype=np.float32)
+    if data.ndim == 3:
+        data = data[..., None]
+    if data.ndim != 4:
+        raise InputError(f"gauge stack: expected (m, H, W, c), got shape {data.shape}")
+    total = np.nan_to_num(data.sum(axis=(0, 3)), nan=0.0, posinf=0.0)
+    bright = np.percentile(total, 99.5)
+    if not bright > 0:
+        raise GaugeError("sphere auto: the gauge images are black; cannot find the sphere")
+    level = 0.05 * bright
+    labels = measure.label(total > level)
+    if labels.max() == 0:
+        raise GaugeError("sphere auto: no bright region found in the gauge images")
+    largest = np.argmax(np.bincount(labels.ravel())[1:]) + 1
+    region = labels == largest
+    # Subpixel boundary of the region, on the image masked to it.
+    contours = measure.find_contours(np.where(region, total, 0.0), level)
+    points = max(contours, key=len)[:, ::-1]  # (row, col) -> (x, y)
+    if len(points) < 20:
+        raise GaugeError("sphere auto: the bright region is too small to be a gauge sphere")
+    model, inliers = measure.ransac(points, measure.CircleModel, min_samples=3,
+                                    residual_threshold=1.0, max_trials=200, rng=0)
+    if model is None or inliers is None:
+        raise GaugeError("sphere auto: no circle fits the gauge's outline")
+    cx, cy, r = (float(v) for v in model.params)
+    area_ratio = region.sum() / (np.pi * r * r)
+    if inliers.mean() < 0.8 or not 0.85 < area_ratio < 1.15:
+        raise GaugeError(
+            f"sphere auto: no convincing circle (best fit ({cx:.1f}, {cy:.1f}) r={r:.1f} "
+            f"explains {inliers.mean():.0%} of the outline, region/circle area "
+            f"{area_ratio:.2f}); give --sphere CX,CY,R")
+    return cx, cy, r

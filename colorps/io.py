@@ -1,0 +1,216 @@
+"""Image I/O: the only module that talks to OpenImageIO.
+
+Everything else in colorps sees float32 numpy arrays of *linear* values.
+
+==================  ==========================  ==============================
+format              stored as                   default decoding
+==================  ==========================  ==============================
+OpenEXR, HDR        half / float                linear
+TIFF                8 / 16-bit int, 32 float    int: sRGB, float: linear
+PNG                 8 / 16-bit int              sRGB
+JPEG                8-bit int (lossy)           sRGB
+==================  ==========================  ==============================
+
+Integer values are scaled to 0..1 by OpenImageIO; sRGB decoding and encoding use
+colour-science's sRGB transfer functions. Alpha channels are dropped.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import tempfile
+from pathlib import Path
+from typing import Literal, Sequence
+
+import numpy as np
+
+from .errors import ImageReadError, InputError, OutputError
+
+__all__ = ["read_image", "read_stack", "write_image", "expand_paths", "srgb_decode",
+           "srgb_encode", "Encoding"]
+
+Encoding = Literal["auto", "linear", "srgb"]
+_INTEGER_TYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32")
+
+
+def srgb_decode(values) -> np.ndarray:
+    """sRGB-encoded values (0..1) to linear, with colour-science."""
+    import colour
+
+    return np.asarray(colour.cctf_decoding(np.asarray(values, np.float64), function="sRGB"),
+                      dtype=np.float32)
+
+
+def srgb_encode(values) -> np.ndarray:
+    """Linear values to sRGB-encoded (0..1, clipped), with colour-science."""
+    import colour
+
+    v = np.clip(np.nan_to_num(np.asarray(values, np.float64), nan=0.0), 0.0, 1.0)
+    return np.asarray(colour.cctf_encoding(v, function="sRGB"), dtype=np.float32)
+
+
+def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]]:
+    """Read one image as linear float32.
+
+    Parameters
+    ----------
+    path : str or Path
+    encoding : {"auto", "linear", "srgb"}, optional
+        How stored values map to linear light. "auto": integer formats are
+        sRGB-encoded, floating-point formats (EXR, HDR, float TIFF) are linear.
+
+    Returns
+    -------
+    image : (H, W, c) ndarray of float32
+        Linear values (alpha dropped).
+    channel_names : list of str
+
+    Raises
+    ------
+    ImageReadError
+        Missing, unreadable, truncated or corrupt file, or a directory.
+    """
+    import OpenImageIO as oiio
+
+    if encoding not in ("auto", "linear", "srgb"):
+        raise InputError(f"encoding: expected 'auto', 'linear' or 'srgb', got {encoding!r}")
+    path = Path(path)
+    if path.is_dir():
+        raise ImageReadError(f"{path}: is a directory, not an image")
+    if not path.exists():
+        raise ImageReadError(f"{path}: no such file")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageReadError(f"{path}: cannot read image ({oiio.geterror().strip()})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        problem = inp.geterror().strip()
+    finally:
+        inp.close()
+    if pixels is None or problem:
+        raise ImageReadError(f"{path}: corrupt or truncated image ({problem or 'no data'})")
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
+    names = list(spec.channelnames)
+    keep = [k for k in range(spec.nchannels) if k != spec.alpha_channel]
+    pixels = pixels[..., keep]
+    names = [names[k] for k in keep]
+    if encoding == "srgb" or (encoding == "auto" and str(spec.format) in _INTEGER_TYPES):
+        pixels = srgb_decode(pixels)
+    return np.ascontiguousarray(pixels), names
+
+
+def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "stack",
+               progress: bool = False) -> tuple[np.ndarray, list[str]]:
+    """Read images that share size and channel count into a (m, H, W, c) stack.
+
+    Raises
+    ------
+    ImageReadError
+        When a file cannot be read, or differs in size or channels from the
+        first one (the message names both).
+    """
+    from tqdm.auto import tqdm
+
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ImageReadError(f"{name}: no images given")
+    first, names = None, None
+    images = []
+    for path in tqdm(paths, desc=f"reading {name}", disable=not progress, leave=False):
+        image, channel_names = read_image(path, encoding)
+        if first is None:
+            first, names = path, channel_names
+        elif image.shape != images[0].shape:
+            raise ImageReadError(
+                f"{path}: size {image.shape[1]}x{image.shape[0]} with {image.shape[2]} "
+                f"channel(s) differs from {first} ({images[0].shape[1]}x"
+                f"{images[0].shape[0]} with {images[0].shape[2]})")
+        images.append(image)
+    return np.stack(images), names
+
+
+def write_image(path, image, *, channel_names: Sequence[str] | None = None,
+                dtype: Literal["float", "half", "uint8", "uint16"] = "float") -> Path:
+    """Write an image atomically (temporary file in the same folder, then rename).
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination; the format follows the extension.
+    image : (H, W) or (H, W, c) array_like
+        Values as they should be stored (integer types expect 0..1, already
+        encoded: see :func:`srgb_encode`).
+    channel_names : sequence of str, optional
+    dtype : {"float", "half", "uint8", "uint16"}, optional
+        Pixel type in the file.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    data = np.asarray(image, dtype=np.float32)
+    if data.ndim == 2:
+        data = data[..., np.newaxis]
+    h, w, c = data.shape
+    spec = oiio.ImageSpec(w, h, c, dtype)
+    if channel_names is not None:
+        spec.channelnames = tuple(channel_names)
+    if path.suffix.lower() == ".exr":
+        spec.attribute("compression", "zip")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None or not out.open(tmp, spec):
+            raise OutputError(f"{path}: cannot write ({oiio.geterror().strip()})")
+        ok = out.write_image(np.ascontiguousarray(data))
+        out.close()
+        if not ok:
+            raise OutputError(f"{path}: cannot write ({out.geterror().strip()})")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def expand_paths(patterns: str | Sequence[str], *, name: str = "images") -> list[Path]:
+    """Expand quoted globs, plain paths and ``@list.txt`` files, naturally sorted.
+
+    Each pattern is expanded and naturally sorted on its own (``img2`` before
+    ``img10``); the results are concatenated in the order given. A list file
+    holds one path per line (relative to the list file; ``#`` starts a comment).
+
+    Raises
+    ------
+    ImageReadError
+        A glob that matches nothing, a missing list file, or no paths at all.
+    """
+    from natsort import natsorted
+
+    if isinstance(patterns, (str, Path)):
+        patterns = [patterns]
+    paths: list[Path] = []
+    for pattern in map(str, patterns):
+        if pattern.startswith("@"):
+            listing = Path(pattern[1:])
+            try:
+                lines = listing.read_text().splitlines()
+            except OSError as exc:
+                raise ImageReadError(f"{listing}: cannot read list file ({exc.strerror})") from None
+            for line in lines:
+                line = line.split("#", 1)[0].strip()
+                if line:
+                    p = Path(line)
+                    paths.append(p if p.is_absolute() else listing.parent / p)
+        elif glob.has_magic(pattern):
+            matches = natsorted(glob.glob(pattern))
+            if not matches:
+                raise ImageReadError(f"{name}: pattern {pattern!r} matches no file")
+            paths.extend(Path(m) for m in matches)
+        else:
+            paths.append(Path(pattern))
+    if not paths:
+        raise ImageReadError(f"{name}: no images given")
+    return paths

@@ -1,0 +1,138 @@
+"""Write a reconstruction to an output folder, all files or none.
+
+==============  ==============================================================
+file            content
+==============  ==============================================================
+normal.exr      float32 camera-space unit normals, channels X, Y, Z; NaN where
+                not solved
+normal.png      8-bit preview (n + 1) / 2 in R, G, B; black where not solved
+albedo.exr      float32 linear albedo, one channel per input band (input names)
+albedo.png      sRGB preview (colour-science), black where not solved
+quality.exr     float32 match distance (signature units); NaN where not solved
+report.json     inputs, parameters, statistics, unsolved pixels by reason
+==============  ==============================================================
+
+Files are first written to a temporary folder inside the output folder and only
+moved into place once all of them were written, so a failed or interrupted run
+leaves no half-written result.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import OutputError
+from .io import srgb_encode, write_image
+from .reconstruct import Reconstruction
+
+__all__ = ["OUTPUT_FILES", "prepare_output_dir", "save_reconstruction"]
+
+OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
+                "report.json")
+
+
+def prepare_output_dir(out_dir, *, overwrite: bool = False,
+                       files: Sequence[str] = OUTPUT_FILES) -> Path:
+    """Check (and create) an output folder before any work is done.
+
+    Raises
+    ------
+    OutputError
+        The path is a file, cannot be created or written, or already holds
+        results and ``overwrite`` is false.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: output path exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise OutputError(f"{out}: output folder is not writable")
+    existing = [name for name in files if (out / name).exists()]
+    if existing and not overwrite:
+        raise OutputError(f"{out}: already holds results ({', '.join(existing)}); "
+                          "use --overwrite to replace them")
+    return out
+
+
+def _preview(values: np.ndarray) -> np.ndarray:
+    """Albedo preview: sRGB-encoded RGB (or grey) in 0..1, black where NaN."""
+    c = values.shape[-1]
+    rgb = values[..., :3] if c >= 3 else np.repeat(values[..., :1], 3, axis=-1)
+    return srgb_encode(rgb)
+
+
+def save_reconstruction(result: Reconstruction, out_dir, *,
+                        channel_names: Sequence[str] | None = None,
+                        report: dict | None = None, overwrite: bool = False,
+                        extra_images: dict | None = None) -> list[Path]:
+    """Write all output files of a reconstruction (see the module docstring).
+
+    Parameters
+    ----------
+    result : Reconstruction
+    out_dir : str or Path
+    channel_names : sequence of str, optional
+        Names of the input bands (default R, G, B or Y / B0, B1, ...).
+    report : dict, optional
+        Inputs and parameters to record in report.json beside the statistics.
+    overwrite : bool, optional
+        Replace existing results.
+    extra_images : dict, optional
+        More ``{file name: (array, dtype)}`` to write in the same transaction.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    out = prepare_output_dir(out_dir, overwrite=overwrite)
+    c = result.albedo.shape[-1]
+    if channel_names is None:
+        channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
+    normal_png = np.where(result.solved[..., None], (result.normals + 1) / 2, 0.0)
+    albedo_png = _preview(np.where(result.solved[..., None], result.albedo, 0.0))
+    doc = dict(report or {})
+    doc["statistics"] = result.stats
+    doc["conventions"] = ("camera-space normals: x right, y up, z towards the camera; "
+                          "pixel (x, y) = (column, row); linear values")
+    doc["files"] = list(OUTPUT_FILES) + sorted(extra_images or {})
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=".colorps-", dir=out))
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
+    try:
+        write_image(tmp / "normal.exr", result.normals, channel_names=["X", "Y", "Z"])
+        write_image(tmp / "normal.png", normal_png, dtype="uint8")
+        write_image(tmp / "albedo.exr", result.albedo, channel_names=list(channel_names))
+        write_image(tmp / "albedo.png", albedo_png, dtype="uint8")
+        write_image(tmp / "quality.exr", result.quality, channel_names=["Q"])
+        for name, (image, dtype) in (extra_images or {}).items():
+            write_image(tmp / name, image, dtype=dtype)
+        (tmp / "report.json").write_text(json.dumps(doc, indent=2, default=_jsonable))
+        written = []
+        for name in doc["files"]:
+            os.replace(tmp / name, out / name)
+            written.append(out / name)
+        return written
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _jsonable(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value)}")
