@@ -12,7 +12,14 @@ import numpy as np
 from . import __version__
 from .errors import ColorPSError, InputError
 
-_FORMATTER = argparse.ArgumentDefaultsHelpFormatter
+class _FORMATTER(argparse.HelpFormatter):
+    """Show a default where it means something and the help does not say it."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" not in text and action.default not in (None, False, argparse.SUPPRESS):
+            text += " (default: %(default)s)"
+        return text
 
 
 def _sphere(text: str):

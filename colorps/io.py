@@ -149,6 +149,8 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
     import OpenImageIO as oiio
 
     path = Path(path)
+    if dtype not in ("float", "half", "uint8", "uint16"):
+        raise InputError(f"dtype: expected 'float', 'half', 'uint8' or 'uint16', got {dtype!r}")
     data = np.asarray(image, dtype=np.float32)
     if data.ndim == 2:
         data = data[..., np.newaxis]
@@ -162,8 +164,10 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
     os.close(fd)
     try:
         out = oiio.ImageOutput.create(tmp)
-        if out is None or not out.open(tmp, spec):
+        if out is None:
             raise OutputError(f"{path}: cannot write ({oiio.geterror().strip()})")
+        if not out.open(tmp, spec):
+            raise OutputError(f"{path}: cannot write ({out.geterror().strip()})")
         ok = out.write_image(np.ascontiguousarray(data))
         out.close()
         if not ok:
@@ -213,4 +217,7 @@ def expand_paths(patterns: str | Sequence[str], *, name: str = "images") -> list
             paths.append(Path(pattern))
     if not paths:
         raise ImageReadError(f"{name}: no images given")
+    for path in paths:
+        if not path.exists():
+            raise ImageReadError(f"{path}: no such file")
     return paths

@@ -295,11 +295,22 @@ def smiley_surface(size: int | tuple[int, int] = 256, *, radius: float | None = 
 def mixed_lights(m: int, theta_deg: float = 45.0) -> Lighting:
     """Two lights of different colours per image, 2m distinct directions.
 
-    Each image is lit at once by a warm light (1, 0.5, 0.05) and a cool light
-    (0.05, 0.5, 1), from different directions; the pairs rotate from image to
-    image. Colour mode separates them by band, mono mode cannot.
+    Each image is lit at once by a warm light (1, 0.5, 0.05) at ``theta_deg``
+    from the view axis and a cool light (0.05, 0.5, 1) at ``theta_deg / 2``,
+    from azimuths evenly spaced over the 2m lights; warm and cool swap from
+    image to image. Colour mode separates the lights by band, mono mode cannot.
+
+    Notes
+    -----
+    With m = 2 each band's signature is a ratio of two values, so the normal is
+    fixed by three ratios. Symmetric layouts make them ambiguous: four lights at
+    one elevation and azimuths 0, 90, 180, 270 degrees give every normal with
+    nx = -ny the same three ratios. Alternating elevations break that symmetry.
     """
-    ring = ring_lights(2 * m, theta_deg).directions[:, 0, :]
+    phi = 2 * np.pi * np.arange(2 * m) / (2 * m)
+    theta = np.deg2rad(np.where(np.arange(2 * m) % 2 == 0, theta_deg, theta_deg / 2))
+    ring = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                     np.cos(theta)], axis=1)
     directions = np.stack([ring[0::2], ring[1::2]], axis=1)
     warm, cool = (1.0, 0.5, 0.05), (0.05, 0.5, 1.0)
     colours = np.array([[warm, cool] if k % 2 == 0 else [cool, warm] for k in range(m)])

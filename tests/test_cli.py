@@ -1,0 +1,161 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from colorps import __version__
+from colorps.cli import main
+from colorps.io import read_image, write_image
+from colorps.outputs import OUTPUT_FILES
+from colorps.synth import write_synthetic
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sample")
+    info = write_synthetic(folder, size=64, images=5, theta=40, gauge_radius=45)
+    return folder, info
+
+
+def args_for(sample, out, *extra, sphere=None):
+    folder, info = sample
+    g = info["gauge_sphere"]
+    return ["reconstruct", "--scene", str(folder / "scene_*.exr"),
+            "--gauge", str(folder / "gauge_*.exr"),
+            "--sphere", sphere or f"{g['cx']},{g['cy']},{g['r']}",
+            "--out", str(out), "--quiet", *extra]
+
+
+def test_reconstruct_writes_every_output(sample, tmp_path):
+    out = tmp_path / "out"
+    assert main(args_for(sample, out, "--mask", str(sample[0] / "mask.png"))) == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
+    normals, names = read_image(out / "normal.exr")
+    assert names == ["X", "Y", "Z"] and normals.shape == (64, 64, 3)
+    truth, _ = read_image(sample[0] / "truth_normal.exr")
+    mask = read_image(sample[0] / "mask.png", "linear")[0][..., 0] > 0.5
+    err = np.degrees(np.arccos(np.clip((normals[mask] * truth[mask]).sum(-1), -1, 1)))
+    assert err.mean() < 1.0
+    albedo, albedo_names = read_image(out / "albedo.exr")
+    assert albedo_names == ["R", "G", "B"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["statistics"]["solved"] == mask.sum()
+    assert report["mode"] == "colour" and report["statistics"]["grid_n"] > 1
+    assert read_image(out / "normal.png", "linear")[0].shape == (64, 64, 3)
+
+
+def test_auto_sphere_mono_and_options(sample, tmp_path):
+    out = tmp_path / "auto"
+    code = main(args_for(sample, out, "--mode", "mono", "--threads", "1", "--grid-n", "50",
+                         "--gauge-albedo", "1,1,1", sphere="auto"))
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["sphere_found_automatically"]
+    assert abs(report["sphere"]["r"] - sample[1]["gauge_sphere"]["r"]) < 1.0
+    assert report["statistics"]["grid_n"] == 50
+
+
+def test_list_file_input(sample, tmp_path):
+    folder, _ = sample
+    listing = tmp_path / "scene.txt"
+    listing.write_text("\n".join(str(p) for p in sorted(folder.glob("scene_*.exr"))))
+    args = args_for(sample, tmp_path / "o")
+    args[args.index("--scene") + 1] = "@" + str(listing)
+    assert main(args) == 0
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda a, s: a.__setitem__(a.index("--scene") + 1, str(s / "nothing_*.exr")),
+     "matches no file"),
+    (lambda a, s: a.__setitem__(a.index("--gauge") + 1, str(s / "gauge_0[0-2].exr")),
+     "--scene gives 5 images but --gauge gives 3"),
+    (lambda a, s: a.__setitem__(a.index("--sphere") + 1, "30,30,500"), "partly outside"),
+    (lambda a, s: a.__setitem__(a.index("--scene") + 1, str(s / "missing.exr")),
+     "missing.exr: no such file"),
+])
+def test_bad_input_exits_nonzero_with_one_line(sample, tmp_path, capsys, mutate, message):
+    out = tmp_path / "bad"
+    args = args_for(sample, out)
+    mutate(args, sample[0])
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("colorps: error:") and message in err and "\n" not in err
+    assert not any(out.glob("*")) if out.exists() else True
+
+
+@pytest.mark.parametrize("option, value", [
+    ("--sphere", "1,2"), ("--sphere", "a,b,c"), ("--gauge-albedo", "0"),
+    ("--gauge-albedo", "x"), ("--threads", "0"), ("--grid-n", "-2"), ("--mode", "rgb"),
+])
+def test_malformed_options_are_usage_errors(sample, tmp_path, capsys, option, value):
+    args = args_for(sample, tmp_path / "o")
+    if option in args:
+        args[args.index(option) + 1] = value
+    else:
+        args += [option, value]
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    assert exit_info.value.code == 2
+    assert option in capsys.readouterr().err
+
+
+def test_existing_results_need_overwrite(sample, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(args_for(sample, out)) == 0
+    before = (out / "normal.exr").read_bytes()
+    assert main(args_for(sample, out)) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert (out / "normal.exr").read_bytes() == before
+    assert main(args_for(sample, out, "--overwrite")) == 0
+
+
+def test_output_path_is_a_file(sample, tmp_path, capsys):
+    target = tmp_path / "file"
+    target.write_text("x")
+    assert main(args_for(sample, target)) == 1
+    assert "not a folder" in capsys.readouterr().err
+
+
+def test_mismatched_image_sizes_name_the_file(sample, tmp_path, capsys):
+    folder, _ = sample
+    odd = tmp_path / "odd"
+    odd.mkdir()
+    for k, path in enumerate(sorted(folder.glob("scene_*.exr"))):
+        image, _ = read_image(path)
+        write_image(odd / path.name, image[:60] if k == 3 else image)
+    args = args_for(sample, tmp_path / "o")
+    args[args.index("--scene") + 1] = str(odd / "scene_*.exr")
+    assert main(args) == 1
+    assert "scene_03.exr: size 64x60" in capsys.readouterr().err
+
+
+def test_synth_and_demo(tmp_path, capsys):
+    data = tmp_path / "data"
+    assert main(["synth", "--out", str(data), "--size", "48", "--images", "4",
+                 "--gauge-radius", "40", "--lights", "mixed"]) == 0
+    assert (data / "sample.json").exists() and len(list(data.glob("scene_*.exr"))) == 4
+    assert main(["demo", "--data", str(data), "--out", str(tmp_path / "demo")]) == 0
+    printed = capsys.readouterr().out
+    assert "normal error (deg): mean" in printed
+    assert main(["demo", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "d")]) == 1
+
+
+def test_console_script_version_and_help():
+    version = subprocess.run([sys.executable, "-m", "colorps.cli", "--version"],
+                             capture_output=True, text=True)
+    assert version.returncode == 0 and __version__ in version.stdout
+    helptext = subprocess.run([sys.executable, "-m", "colorps.cli", "reconstruct", "--help"],
+                              capture_output=True, text=True).stdout
+    helptext = " ".join(helptext.split())
+    assert "--sphere" in helptext and "(default: colour)" in helptext
+    assert "default: None" not in helptext
+    bad = subprocess.run([sys.executable, "-m", "colorps.cli", "reconstruct"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2
+
+
+def test_bundled_demo_runs(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo")]) == 0
+    assert "pixels solved" in capsys.readouterr().out

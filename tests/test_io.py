@@ -1,0 +1,116 @@
+import colour
+import numpy as np
+import pytest
+
+from colorps import ImageReadError, InputError, OutputError
+from colorps.io import expand_paths, read_image, read_stack, srgb_decode, write_image
+
+
+@pytest.mark.parametrize("ext, dtype, channels, tol", [
+    (".exr", "float", 5, 0.0),
+    (".exr", "half", 3, 1e-3),
+    (".tif", "float", 3, 0.0),
+])
+def test_linear_round_trip(tmp_path, rng, ext, dtype, channels, tol):
+    image = rng.uniform(0, 4, (7, 9, channels)).astype(np.float32)
+    names = [f"band{k}" for k in range(channels)]
+    path = write_image(tmp_path / f"img{ext}", image, channel_names=names, dtype=dtype)
+    back, back_names = read_image(path)
+    assert back.shape == image.shape and back.dtype == np.float32
+    np.testing.assert_allclose(back, image, rtol=tol, atol=tol)
+    if ext == ".exr":
+        assert back_names == names
+
+
+@pytest.mark.parametrize("ext, dtype, step", [
+    (".png", "uint8", 1 / 255), (".png", "uint16", 1 / 65535),
+    (".tif", "uint8", 1 / 255), (".tif", "uint16", 1 / 65535),
+    (".jpg", "uint8", 0.08),  # lossy
+])
+def test_integer_formats_decode_srgb(tmp_path, rng, ext, dtype, step):
+    encoded = np.round(rng.uniform(0, 1, (16, 16, 3)) / step) * step
+    if ext == ".jpg":
+        encoded = np.full((16, 16, 3), 0.5)
+    path = write_image(tmp_path / f"img{ext}", encoded, dtype=dtype)
+    linear, _ = read_image(path)
+    expected = colour.cctf_decoding(encoded, function="sRGB")
+    np.testing.assert_allclose(linear, expected, atol=step if ext == ".jpg" else 1e-6)
+    raw, _ = read_image(path, "linear")
+    np.testing.assert_allclose(raw, encoded, atol=step if ext == ".jpg" else 1e-6)
+
+
+def test_srgb_override_and_decoder(tmp_path):
+    values = np.linspace(0, 1, 11, dtype=np.float32)
+    np.testing.assert_allclose(srgb_decode(values), colour.cctf_decoding(values, "sRGB"),
+                               rtol=1e-6)
+    path = write_image(tmp_path / "f.exr", np.tile(values, (2, 1))[..., None])
+    np.testing.assert_allclose(read_image(path, "srgb")[0][0, :, 0], srgb_decode(values),
+                               rtol=1e-6)
+    with pytest.raises(InputError, match="encoding"):
+        read_image(path, "gamma")
+
+
+def test_alpha_is_dropped(tmp_path, rng):
+    rgba = rng.uniform(0, 1, (4, 4, 4)).astype(np.float32)
+    path = write_image(tmp_path / "a.exr", rgba, channel_names=["R", "G", "B", "A"])
+    image, names = read_image(path)
+    assert names == ["R", "G", "B"]
+    np.testing.assert_allclose(image, rgba[..., :3])
+
+
+def test_stack_checks_sizes_and_channels(tmp_path):
+    a = write_image(tmp_path / "a.exr", np.ones((4, 5, 3)))
+    b = write_image(tmp_path / "b.exr", np.ones((4, 6, 3)))
+    c = write_image(tmp_path / "c.exr", np.ones((4, 5, 1)))
+    stack, _ = read_stack([a, a])
+    assert stack.shape == (2, 4, 5, 3)
+    with pytest.raises(ImageReadError, match="b.exr: size 6x4 .* differs from .*a.exr"):
+        read_stack([a, b])
+    with pytest.raises(ImageReadError, match="c.exr: .*1 channel"):
+        read_stack([a, c])
+
+
+def test_unreadable_files(tmp_path):
+    with pytest.raises(ImageReadError, match="missing.exr: no such file"):
+        read_image(tmp_path / "missing.exr")
+    with pytest.raises(ImageReadError, match="is a directory"):
+        read_image(tmp_path)
+    junk = tmp_path / "junk.png"
+    junk.write_bytes(b"not an image at all")
+    with pytest.raises(ImageReadError, match="junk.png"):
+        read_image(junk)
+    good = write_image(tmp_path / "good.exr", np.ones((64, 64, 3)))
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(good.read_bytes()[:300])
+    with pytest.raises(ImageReadError, match="cut.exr"):
+        read_image(cut)
+
+
+def test_write_is_atomic(tmp_path):
+    path = write_image(tmp_path / "x.exr", np.ones((3, 3)))
+    before = path.read_bytes()
+    with pytest.raises(OutputError, match="x.exr: cannot write"):
+        write_image(tmp_path / "x.exr", np.ones((0, 3)))  # OpenImageIO refuses
+    with pytest.raises(OutputError, match="x.bogus: cannot write"):
+        write_image(tmp_path / "x.bogus", np.ones((3, 3)))
+    with pytest.raises(InputError, match="dtype"):
+        write_image(tmp_path / "x.exr", np.ones((3, 3)), dtype="nonsense")
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.exr"]  # no temporary left
+
+
+def test_expand_paths_natural_order_and_lists(tmp_path):
+    for k in (1, 2, 10):
+        (tmp_path / f"img{k}.exr").touch()
+    with pytest.raises(ImageReadError, match="img3.exr: no such file"):
+        expand_paths([str(tmp_path / "img1.exr"), str(tmp_path / "img3.exr")])
+    assert [p.name for p in expand_paths(str(tmp_path / "img*.exr"))] == \
+        ["img1.exr", "img2.exr", "img10.exr"]
+    listing = tmp_path / "list.txt"
+    listing.write_text("img10.exr\n# a comment\nimg1.exr\n")
+    assert [p.name for p in expand_paths("@" + str(listing))] == ["img10.exr", "img1.exr"]
+    assert len(expand_paths([str(tmp_path / "img1.exr"), str(tmp_path / "img2.exr")])) == 2
+    with pytest.raises(ImageReadError, match="matches no file"):
+        expand_paths(str(tmp_path / "none*.exr"))
+    with pytest.raises(ImageReadError, match="cannot read list file"):
+        expand_paths("@" + str(tmp_path / "nolist.txt"))

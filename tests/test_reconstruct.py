@@ -1,0 +1,144 @@
+import numpy as np
+import pytest
+
+from colorps import BucketGrid, Gauge, InputError, compute_signatures, reconstruct, synth
+
+GAUGE_R = 150.0
+
+
+def angular_error(a, b):
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
+
+
+def lit_by_all(surface, lighting):
+    cos = np.einsum("hwc,mlc->hwml", surface.normals, lighting.directions)
+    return surface.mask & (cos > 0).all(axis=(2, 3))
+
+
+def run(lighting, *, scene=None, brdf="lambert", noise=0.0, mode="colour", gauge_albedo=1.0,
+        **kwargs):
+    scene = synth.smiley_surface(160) if scene is None else scene
+    size = int(2 * GAUGE_R + 8)
+    ball = synth.sphere_surface(size, GAUGE_R, albedo=gauge_albedo)
+    scene_stack = synth.render(scene, lighting, brdf=brdf, noise=noise, seed=1)
+    gauge_stack = synth.render(ball, lighting, brdf=brdf, noise=noise, seed=2)
+    centre = (size - 1) / 2
+    gauge = Gauge.from_sphere((size, size), centre, centre, GAUGE_R, albedo=gauge_albedo)
+    result = reconstruct(scene_stack, gauge_stack, gauge, mode=mode, mask=scene.mask,
+                         **kwargs)
+    return scene, result
+
+
+@pytest.mark.parametrize("brdf", ["lambert", "oren-nayar"])
+@pytest.mark.parametrize("mode", ["colour", "mono"])
+def test_noiseless_accuracy(brdf, mode):
+    lighting = synth.ring_lights(8, 45)
+    scene, result = run(lighting, brdf=brdf, mode=mode)
+    ok = lit_by_all(scene, lighting)
+    assert result.solved[ok].all()
+    err = angular_error(result.normals[ok], scene.normals[ok])
+    assert err.mean() <= 0.5, err.mean()
+    rel = np.abs(result.albedo[ok] / scene.albedo[ok] - 1)
+    assert rel.mean(axis=0).max() <= 0.01, rel.mean(axis=0)
+    np.testing.assert_allclose(np.linalg.norm(result.normals[result.solved], axis=-1), 1,
+                               atol=1e-5)
+    assert np.isnan(result.normals[~result.solved]).all()
+    assert result.stats["table_size"] > 60000 and result.stats["solved"] == scene.mask.sum()
+
+
+def test_white_lights_colour_albedo_ratios_in_both_modes():
+    lighting = synth.ring_lights(6, 40)
+    for mode in ("colour", "mono"):
+        scene, result = run(lighting, mode=mode, gauge_albedo=[0.9, 0.8, 0.7])
+        ok = lit_by_all(scene, lighting)
+        # Albedo relative to the gauge's: per band, and as colour ratios.
+        rel = np.abs(result.albedo[ok] / scene.albedo[ok] - 1)
+        assert np.median(rel) < 0.005
+        ratio = result.albedo[ok][:, 0] / result.albedo[ok][:, 2]
+        truth = scene.albedo[ok][:, 0] / scene.albedo[ok][:, 2]
+        assert np.median(np.abs(ratio / truth - 1)) < 0.005
+
+
+def test_noise_colour_mode_no_worse_than_mono():
+    """Grey surface, white lights, independent noise in each band."""
+    lighting = synth.ring_lights(6, 45)
+    scene = synth.smiley_surface(160, coloured=False)
+    errors = {}
+    for mode in ("colour", "mono"):
+        _, result = run(lighting, scene=scene, noise=0.01, mode=mode)
+        ok = lit_by_all(scene, lighting)
+        errors[mode] = angular_error(result.normals[ok], scene.normals[ok]).mean()
+    assert errors["colour"] <= errors["mono"] * 1.02, errors
+
+
+def test_two_images_with_mixed_colour_lights():
+    """Two images, each lit by two lights of different colours at once."""
+    lighting = synth.mixed_lights(2, 40)
+    scene, result = run(lighting, mode="colour")
+    ok = lit_by_all(scene, lighting) & result.solved
+    colour_err = angular_error(result.normals[ok], scene.normals[ok])
+    assert colour_err.mean() < 1.0, colour_err.mean()
+    with pytest.raises(InputError, match="mono mode needs at least 3 images.*colour mode"):
+        run(lighting, mode="mono")
+    # What mono mode would get from the same two luminance images: one degree of
+    # freedom per pixel (the ratio of two values) cannot fix a normal.
+    size = int(2 * GAUGE_R + 8)
+    ball = synth.sphere_surface(size, GAUGE_R)
+    gauge = Gauge.from_sphere((size, size), (size - 1) / 2, (size - 1) / 2, GAUGE_R)
+    g = compute_signatures(synth.render(ball, lighting), "mono")
+    s = compute_signatures(synth.render(scene, lighting), "mono")
+    table = gauge.mask & g.valid
+    rows, _ = BucketGrid(g.signatures[table]).query(s.signatures[ok])
+    mono_err = angular_error(gauge.normals[table][rows], scene.normals[ok])
+    assert mono_err.mean() > 10 * colour_err.mean(), (mono_err.mean(), colour_err.mean())
+
+
+def test_one_coloured_light_per_image_adds_nothing_over_mono():
+    """Per band the OV is the mono OV scaled image-wise by the light colours, a
+    fixed linear map: the colour signature holds the same information."""
+    phase = 2 * np.pi * np.arange(5) / 5
+    colours = 0.3 + 0.7 * (0.5 + 0.5 * np.cos(phase[:, None] - [0, 2.1, 4.2]))
+    lighting = synth.ring_lights(5, 45, colours)
+    scene = synth.smiley_surface(160, coloured=False)
+    normals = {}
+    for mode in ("colour", "mono"):
+        _, result = run(lighting, scene=scene, mode=mode, band=0 if mode == "mono" else None)
+        normals[mode] = result.normals
+    ok = lit_by_all(scene, lighting)
+    for mode in normals:
+        assert angular_error(normals[mode][ok], scene.normals[ok]).mean() < 0.5
+
+
+def test_reasons_and_stats():
+    lighting = synth.ring_lights(4, 30)
+    scene = synth.smiley_surface(80)
+    stack = synth.render(scene, lighting)
+    stack[:, 40, 40] = np.nan
+    ball = synth.sphere_surface(120, 55)
+    gauge = Gauge.from_sphere((120, 120), 59.5, 59.5, 55)
+    mask = scene.mask.copy()
+    mask[:, :10] = False
+    result = reconstruct(stack, synth.render(ball, lighting), gauge, mask=mask)
+    assert result.reason[40, 40] == 3 and not result.solved[40, 40]
+    assert (result.reason[~mask] == 1).all()
+    assert (result.reason[mask & ~scene.mask] == 2).all()  # black background
+    by_reason = result.stats["unsolved_by_reason"]
+    assert by_reason["non-finite"] == 1 and by_reason["solved"] == result.solved.sum()
+    assert set(result.stats["seconds"]) == {"signatures", "grid", "lookup", "total"}
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda s, g: (s[:3], g), "scene has 3 images but the gauge has 4"),
+    (lambda s, g: (s[..., :1], g), "channel"),
+    (lambda s, g: (s, g[:, :50]), "gauge geometry"),
+])
+def test_mismatched_inputs(change, message):
+    lighting = synth.ring_lights(4, 30)
+    scene = synth.render(synth.smiley_surface(40), lighting)
+    gauge_stack = synth.render(synth.sphere_surface(120, 55), lighting)
+    gauge = Gauge.from_sphere((120, 120), 59.5, 59.5, 55)
+    s, g = change(scene, gauge_stack)
+    with pytest.raises(InputError, match=message):
+        reconstruct(s, g, gauge)
+    with pytest.raises(InputError, match="mask"):
+        reconstruct(scene, gauge_stack, gauge, mask=np.ones((3, 3), bool))
