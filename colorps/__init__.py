@@ -10,6 +10,7 @@ from .errors import ColorPSError, GaugeError, ImageReadError, InputError, Output
 from . import synth
 from .gauge import Gauge, find_sphere
 from .grid import BucketGrid, QueryStats
+from .integrate import integrate, weights_from_quality
 from .reconstruct import Reconstruction, reconstruct
 from .signatures import SignatureSet, compute_signatures, luminance
 
@@ -20,7 +21,7 @@ except PackageNotFoundError:  # running from a source tree
 
 __all__ = [
     "BucketGrid", "QueryStats", "Gauge", "find_sphere", "Reconstruction", "reconstruct",
-    "synth", "SignatureSet", "compute_signatures", "luminance",
+    "synth", "integrate", "weights_from_quality", "SignatureSet", "compute_signatures", "luminance",
     "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",
     "__version__",
 ]

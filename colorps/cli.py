@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
-from .errors import ColorPSError, InputError
+from .errors import ColorPSError, InputError, OutputError
 
 class _FORMATTER(argparse.HelpFormatter):
     """Show a default where it means something and the help does not say it."""
@@ -95,8 +96,25 @@ def build_parser() -> argparse.ArgumentParser:
                      help="bucket grid size (default: round(2 sqrt(table size)))")
     rec.add_argument("--encoding", choices=("auto", "linear", "srgb"), default="auto",
                      help="pixel encoding: auto = integer formats sRGB, float formats linear")
+    rec.add_argument("--no-height", action="store_true",
+                     help="skip the height map, relief and overview pictures")
+    rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=None,
+                     help="also write a mesh of the height field with albedo colours")
     rec.add_argument("--overwrite", action="store_true", help="replace existing results")
     rec.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+    integ = sub.add_parser("integrate", formatter_class=_FORMATTER,
+                           help="integrate a normal map (normal.exr) into a height map")
+    integ.add_argument("normals", metavar="NORMALS", help="normal map (X, Y, Z channels)")
+    integ.add_argument("--out", required=True, metavar="FILE",
+                       help="height map to write (.exr)")
+    integ.add_argument("--mask", metavar="FILE", help="mask image (non-zero = integrate)")
+    integ.add_argument("--weights", metavar="FILE",
+                       help="quality.exr of a reconstruction: unreliable pixels count less")
+    integ.add_argument("--method", choices=("poisson", "dct"), default="poisson",
+                       help="masked sparse least squares, or DCT for full rectangles")
+    integ.add_argument("--mesh", metavar="FILE", help="also write a mesh (.ply or .obj)")
+    integ.add_argument("--overwrite", action="store_true", help="replace existing files")
 
     demo = sub.add_parser("demo", formatter_class=_FORMATTER,
                           help="run the full pipeline on the bundled sample and report "
@@ -134,7 +152,8 @@ def _read_mask(path: str, shape) -> np.ndarray:
 
 def run_reconstruct(scene_patterns, gauge_patterns, sphere, out, *, gauge_albedo=1.0,
                     mode="colour", band=None, mask=None, threads=None, grid_n=None,
-                    encoding="auto", overwrite=False, progress=True):
+                    encoding="auto", overwrite=False, progress=True, height=True,
+                    mesh=None):
     """Read, reconstruct and write: the work behind ``colorps reconstruct``."""
     from .gauge import Gauge, find_sphere
     from .io import expand_paths, read_stack
@@ -169,8 +188,68 @@ def run_reconstruct(scene_patterns, gauge_patterns, sphere, out, *, gauge_albedo
         sphere_found_automatically=sphere == "auto", gauge_albedo=gauge_albedo, mode=mode,
         band=band, mask=mask, encoding=encoding, channels=names,
     )
-    save_reconstruction(result, out, channel_names=names, report=report, overwrite=overwrite)
+    extra = {}
+    if height:
+        from .figures import overview, shaded_relief
+        from .integrate import integrate, weights_from_quality
+        from .io import write_image
+
+        t0 = time.perf_counter()
+        z = integrate(result.normals, result.solved,
+                      weights=weights_from_quality(result.quality))
+        result.stats["seconds"]["integration"] = time.perf_counter() - t0
+        result.height = z
+        figure = overview(scene.mean(axis=0), result.normals, result.albedo, z,
+                          title=f"colorps {mode} mode: {result.stats['solved']} pixels solved")
+        extra["height.exr"] = lambda p: write_image(p, z, channel_names=["Z"])
+        extra["relief.png"] = lambda p: write_image(p, shaded_relief(z), dtype="uint8")
+        extra["overview.png"] = lambda p: write_image(p, figure, dtype="uint8")
+        for kind in ("ply", "obj") if mesh == "both" else (mesh,) if mesh else ():
+            extra[f"mesh.{kind}"] = _mesh_writer(z, result.albedo)
+    elif mesh:
+        raise InputError("--mesh needs the height map; drop --no-height")
+    save_reconstruction(result, out, channel_names=names, report=report, overwrite=overwrite,
+                        extra_files=extra)
     return result
+
+
+def _mesh_writer(height, colours):
+    from .mesh import height_mesh, write_mesh
+
+    return lambda path: write_mesh(height_mesh(height, colours), path)
+
+
+def run_integrate(normals_path, out, *, mask=None, weights=None, method="poisson",
+                  mesh=None, overwrite=False):
+    """Integrate a normal map file into a height map file (``colorps integrate``)."""
+    from .integrate import integrate, weights_from_quality
+    from .io import read_image, write_image
+
+    targets = [Path(out)] + ([Path(mesh)] if mesh else [])
+    for target in targets:
+        if target.exists() and not overwrite:
+            raise OutputError(f"{target}: already exists; use --overwrite to replace it")
+        if not target.parent.is_dir():
+            raise OutputError(f"{target.parent}: output folder does not exist")
+    if Path(out).suffix.lower() != ".exr":
+        raise InputError(f"--out {out}: the height map is written as OpenEXR (.exr)")
+    normals, _ = read_image(normals_path, "linear")
+    if normals.shape[2] < 3:
+        raise InputError(f"{normals_path}: a normal map needs 3 channels (X, Y, Z), "
+                         f"got {normals.shape[2]}")
+    normals = normals[..., :3]
+    scene_mask = None if mask is None else _read_mask(mask, normals.shape[:2])
+    w = None
+    if weights is not None:
+        quality, _ = read_image(weights, "linear")
+        if quality.shape[:2] != normals.shape[:2]:
+            raise InputError(f"{weights}: size differs from {normals_path}")
+        w = weights_from_quality(quality[..., 0])
+    z = integrate(normals, scene_mask, weights=w, method=method)
+    if mesh:
+        _mesh_writer(z, None)(mesh)
+    write_image(out, z, channel_names=["Z"])
+    return z
 
 
 def _angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -217,12 +296,18 @@ def main(argv=None) -> int:
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
                 mode=args.mode, band=args.band, mask=args.mask, threads=args.threads,
                 grid_n=args.grid_n, encoding=args.encoding, overwrite=args.overwrite,
-                progress=not args.quiet)
+                progress=not args.quiet, height=not args.no_height, mesh=args.mesh)
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s['solved']} of {s['pixels']} pixels "
                       f"(table {s['table_size']}, grid N={s['grid_n']}, "
                       f"{s['seconds']['total']:.2f} s); results in {args.out}/")
+        elif args.command == "integrate":
+            z = run_integrate(args.normals, args.out, mask=args.mask, weights=args.weights,
+                              method=args.method, mesh=args.mesh, overwrite=args.overwrite)
+            inside = np.isfinite(z)
+            print(f"integrated {inside.sum()} pixels; relief depth "
+                  f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")
         elif args.command == "demo":
             run_demo(args.out, args.data, args.mode, args.overwrite)
         elif args.command == "synth":

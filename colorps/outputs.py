@@ -10,6 +10,11 @@ albedo.exr      float32 linear albedo, one channel per input band (input names)
 albedo.png      sRGB preview (colour-science), black where not solved
 quality.exr     float32 match distance (signature units); NaN where not solved
 report.json     inputs, parameters, statistics, unsolved pixels by reason
+height.exr      float32 height in pixels (see :mod:`colorps.integrate`), optional
+relief.png      shaded relief of the height map, optional
+overview.png    scene, normals, albedo and relief side by side, optional
+mesh.ply/.obj   triangle mesh of the height field with albedo vertex colours,
+                optional
 ==============  ==============================================================
 
 Files are first written to a temporary folder inside the output folder and only
@@ -32,14 +37,16 @@ from .errors import OutputError
 from .io import srgb_encode, write_image
 from .reconstruct import Reconstruction
 
-__all__ = ["OUTPUT_FILES", "prepare_output_dir", "save_reconstruction"]
+__all__ = ["OUTPUT_FILES", "OPTIONAL_FILES", "prepare_output_dir", "save_reconstruction"]
 
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
                 "report.json")
+#: Written when asked for (height maps are on by default in the CLI).
+OPTIONAL_FILES = ("height.exr", "relief.png", "overview.png", "mesh.ply", "mesh.obj")
 
 
 def prepare_output_dir(out_dir, *, overwrite: bool = False,
-                       files: Sequence[str] = OUTPUT_FILES) -> Path:
+                       files: Sequence[str] = OUTPUT_FILES + OPTIONAL_FILES) -> Path:
     """Check (and create) an output folder before any work is done.
 
     Raises
@@ -74,7 +81,7 @@ def _preview(values: np.ndarray) -> np.ndarray:
 def save_reconstruction(result: Reconstruction, out_dir, *,
                         channel_names: Sequence[str] | None = None,
                         report: dict | None = None, overwrite: bool = False,
-                        extra_images: dict | None = None) -> list[Path]:
+                        extra_files: dict | None = None) -> list[Path]:
     """Write all output files of a reconstruction (see the module docstring).
 
     Parameters
@@ -87,8 +94,9 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         Inputs and parameters to record in report.json beside the statistics.
     overwrite : bool, optional
         Replace existing results.
-    extra_images : dict, optional
-        More ``{file name: (array, dtype)}`` to write in the same transaction.
+    extra_files : dict, optional
+        More ``{file name: writer}`` to write in the same transaction; each
+        ``writer(path)`` writes one file (e.g. the height map, a mesh).
 
     Returns
     -------
@@ -105,7 +113,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     doc["statistics"] = result.stats
     doc["conventions"] = ("camera-space normals: x right, y up, z towards the camera; "
                           "pixel (x, y) = (column, row); linear values")
-    doc["files"] = list(OUTPUT_FILES) + sorted(extra_images or {})
+    doc["files"] = list(OUTPUT_FILES) + sorted(extra_files or {})
     try:
         tmp = Path(tempfile.mkdtemp(prefix=".colorps-", dir=out))
     except OSError as exc:
@@ -116,8 +124,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         write_image(tmp / "albedo.exr", result.albedo, channel_names=list(channel_names))
         write_image(tmp / "albedo.png", albedo_png, dtype="uint8")
         write_image(tmp / "quality.exr", result.quality, channel_names=["Q"])
-        for name, (image, dtype) in (extra_images or {}).items():
-            write_image(tmp / name, image, dtype=dtype)
+        for name, writer in (extra_files or {}).items():
+            writer(tmp / name)
         (tmp / "report.json").write_text(json.dumps(doc, indent=2, default=_jsonable))
         written = []
         for name in doc["files"]:

@@ -57,6 +57,8 @@ class Reconstruction:
     stats : dict
         Table size, grid N, mean buckets b and entries d per lookup, seconds
         per stage, unsolved counts by reason.
+    height : (H, W) ndarray or None
+        Height map, when integrated (see :func:`colorps.integrate`).
     """
 
     normals: np.ndarray
@@ -65,6 +67,7 @@ class Reconstruction:
     solved: np.ndarray
     reason: np.ndarray
     stats: dict = field(default_factory=dict)
+    height: np.ndarray | None = None
 
 
 def reconstruct(scene, gauge_stack, gauge: Gauge, *,

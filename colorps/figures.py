@@ -1,0 +1,99 @@
+"""Pictures people would rather look at than read: shaded relief and an overview.
+
+Images are returned as float arrays in 0..1 (already display-encoded) and
+written by :mod:`colorps.io`, like every other image.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .io import srgb_encode
+
+__all__ = ["shaded_relief", "overview"]
+
+
+def shaded_relief(height, *, azimuth_deg: float = 135.0, elevation_deg: float = 45.0,
+                  exaggeration: float = 1.0) -> np.ndarray:
+    """Grey hill-shading of a height map, lit from the upper left by default.
+
+    Parameters
+    ----------
+    height : (H, W) array_like
+        Height in pixels (NaN outside: drawn black).
+    azimuth_deg, elevation_deg : float, optional
+        Light direction in the image plane (degrees from +x towards +y, y up)
+        and above it.
+    exaggeration : float, optional
+        Vertical exaggeration of the relief.
+
+    Returns
+    -------
+    (H, W) ndarray of float32 in 0..1
+    """
+    z = np.asarray(height, dtype=np.float64) * exaggeration
+    inside = np.isfinite(z)
+    if not inside.any():
+        return np.zeros(z.shape, dtype=np.float32)
+    # Outside pixels take the nearest inside height, so the rim shades cleanly.
+    from scipy import ndimage
+
+    nearest = ndimage.distance_transform_edt(~inside, return_distances=False,
+                                             return_indices=True)
+    filled = z[tuple(nearest)]
+    drow, dx = np.gradient(filled)
+    normal = np.stack([-dx, drow, np.ones_like(dx)], axis=-1)  # y up: dz/dy = -dz/drow
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
+    light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    shade = np.clip(normal @ light, 0.0, 1.0)
+    return np.where(inside, 0.1 + 0.9 * shade, 0.0).astype(np.float32)
+
+
+def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.ndarray:
+    """Side-by-side figure: scene photo, normal map, albedo, shaded relief.
+
+    Parameters
+    ----------
+    scene_image : (H, W, c) array_like
+        One linear scene image (e.g. the mean of the stack).
+    normals : (H, W, 3) array_like
+        Camera-space normals (NaN = unsolved).
+    albedo : (H, W, c) array_like
+        Linear albedo (NaN = unsolved).
+    height : (H, W) array_like or None
+        Height map (NaN outside), or None to leave the panel out.
+
+    Returns
+    -------
+    (h, w, 3) ndarray of float32 in 0..1
+        The rendered figure (sRGB), ready for :func:`colorps.io.write_image`.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    def rgb(values):
+        v = np.asarray(values, dtype=np.float64)
+        v = v[..., :3] if v.shape[-1] >= 3 else np.repeat(v[..., :1], 3, axis=-1)
+        return v
+
+    photo = rgb(scene_image)
+    peak = np.nanpercentile(photo, 99.5) if np.isfinite(photo).any() else 1.0
+    panels = [("scene (mean image)", srgb_encode(photo / (peak if peak > 0 else 1.0))),
+              ("normals (n + 1) / 2", np.nan_to_num((np.asarray(normals) + 1) / 2, nan=0.0)),
+              ("albedo", srgb_encode(rgb(albedo)))]
+    if height is not None:
+        panels.append(("shaded relief", shaded_relief(height)))
+    fig = Figure(figsize=(3.2 * len(panels), 3.6), dpi=100)
+    for k, (name, image) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), k + 1)
+        ax.imshow(np.clip(image, 0, 1), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(name, fontsize=10)
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    figure = np.asarray(canvas.buffer_rgba(), dtype=np.float32)[..., :3] / 255.0
+    return figure

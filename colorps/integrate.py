@@ -1,0 +1,242 @@
+"""Normals to height: least-squares integration of the slope field.
+
+Slopes from camera-space normals (x right, y up, z towards the camera), per pixel
+step, orthographic::
+
+    dz/dx   = -nx / nz          (one column to the right)
+    dz/drow = +ny / nz          (one row down: rows go down, y goes up)
+
+with nz clamped to at least ``min_nz`` (default 0.05, slopes up to about 20)
+so nearly vertical normals cannot produce unbounded slopes.
+
+The height z minimises the (weighted) sum over all pairs of 4-neighbouring
+pixels inside the mask of (z_b - z_a - g_ab)^2, where g_ab is the mean of the two
+pixels' slopes along the pair. Only pairs inside the mask contribute: the
+boundary is *free* (no assumption about the height or slope outside), which is
+the natural Neumann condition of this least-squares problem.
+
+============  ==========================================================
+quantity      unit / convention
+============  ==========================================================
+height        pixels (the same unit as x and y), larger = nearer the camera
+offset        each connected part of the mask is integrated on its own and
+              shifted to zero mean height: relative heights *between*
+              separate parts are not observable from normals
+outside       NaN
+============  ==========================================================
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["integrate", "slopes", "weights_from_quality", "METHODS"]
+
+METHODS = ("poisson", "dct")
+
+
+def slopes(normals, *, min_nz: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Height slopes (dz/dx, dz/drow) per pixel from camera-space normals.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) array_like
+        Unit normals, x right, y up, z towards the camera.
+    min_nz : float, optional
+        Lower clamp of nz (grazing normals).
+
+    Returns
+    -------
+    gx, grow : (H, W) ndarray of float64
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise InputError(f"normals: expected shape (H, W, 3), got {n.shape}")
+    nz = np.maximum(n[..., 2], min_nz)
+    return -n[..., 0] / nz, n[..., 1] / nz
+
+
+def weights_from_quality(quality, *, scale: float | None = None) -> np.ndarray:
+    """Integration weights from a match-quality map: 1 / (1 + (q / scale)^2).
+
+    Parameters
+    ----------
+    quality : (H, W) array_like
+        Match distances (NaN = unsolved, weight 0).
+    scale : float, optional
+        Distance at which the weight halves; default 3 x the median distance.
+    """
+    q = np.asarray(quality, dtype=np.float64)
+    finite = np.isfinite(q)
+    if scale is None:
+        median = np.median(q[finite]) if finite.any() else 0.0
+        scale = 3.0 * median if median > 0 else 1.0
+    w = 1.0 / (1.0 + (np.where(finite, q, 0.0) / scale) ** 2)
+    return np.where(finite, w, 0.0)
+
+
+def _edges(mask: np.ndarray):
+    """Index pairs (a, b) of 4-neighbour pixels inside the mask, as flat indices."""
+    h, w = mask.shape
+    idx = np.arange(h * w).reshape(h, w)
+    right = mask[:, :-1] & mask[:, 1:]
+    down = mask[:-1, :] & mask[1:, :]
+    return (idx[:, :-1][right], idx[:, 1:][right]), (idx[:-1, :][down], idx[1:, :][down])
+
+
+def _validate(normals, mask, weights):
+    n = np.asarray(normals, dtype=np.float64)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise InputError(f"normals: expected shape (H, W, 3), got {n.shape}")
+    finite = np.isfinite(n).all(axis=-1)
+    if mask is None:
+        mask = finite
+    else:
+        mask = np.asarray(mask)
+        if mask.shape != n.shape[:2]:
+            raise InputError(f"mask: shape {mask.shape} differs from the normals' "
+                             f"{n.shape[:2]}")
+        mask = mask.astype(bool) & finite
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != n.shape[:2]:
+            raise InputError(f"weights: shape {weights.shape} differs from the normals' "
+                             f"{n.shape[:2]}")
+        if not np.all(np.isfinite(weights[mask])) or np.any(weights[mask] < 0):
+            raise InputError("weights: must be finite and >= 0 inside the mask")
+    return np.where(finite[..., None], n, 0.0), mask, weights
+
+
+def integrate(normals, mask=None, *, weights=None,
+              method: Literal["poisson", "dct"] = "poisson", min_nz: float = 0.05,
+              tol: float = 1e-8) -> np.ndarray:
+    """Integrate a normal map into a height map (pixel units, orthographic).
+
+    Parameters
+    ----------
+    normals : (H, W, 3) array_like
+        Camera-space unit normals (x right, y up, z towards the camera). Pixels
+        with NaN normals are outside the mask.
+    mask : (H, W) array_like of bool, optional
+        Pixels to integrate (default: every pixel with finite normals). Any
+        shape: non-rectangular, with holes, several separate parts.
+    weights : (H, W) array_like, optional
+        Reliability per pixel (>= 0); a pair of neighbours counts with the
+        smaller of its two weights. See :func:`weights_from_quality`.
+    method : {"poisson", "dct"}, optional
+        "poisson": masked weighted least squares, a sparse system solved with
+        classical algebraic multigrid (pyamg, Ruge-Stuben) +
+        conjugate gradients. "dct": the same
+        least-squares solution computed with fast cosine transforms; needs a
+        full rectangle (no mask holes) and no weights.
+    min_nz : float, optional
+        Lower clamp of nz when converting normals to slopes.
+    tol : float, optional
+        Relative residual tolerance of the iterative solver.
+
+    Returns
+    -------
+    (H, W) ndarray of float64
+        Height in pixels, NaN outside the mask; each connected part has zero
+        mean height (the constant offset is not observable).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from colorps import integrate, synth
+    >>> cap = synth.sphere_surface(64, 40)          # a sphere cap filling a disk
+    >>> z = integrate(cap.normals, cap.mask)
+    >>> truth = cap.height - np.nanmean(cap.height)
+    >>> bool(np.nanmax(np.abs(z - truth)) < 0.01 * 40)
+    True
+    """
+    if method not in METHODS:
+        raise InputError(f"method: expected one of {METHODS}, got {method!r}")
+    normals, mask, weights = _validate(normals, mask, weights)
+    gx, grow = slopes(normals, min_nz=min_nz)
+    h, w = mask.shape
+    height = np.full((h, w), np.nan)
+    if not mask.any():
+        return height
+    if method == "dct":
+        if not mask.all() or weights is not None:
+            raise InputError("method 'dct' needs a full rectangle (every normal finite, "
+                             "no mask) and no weights; use method='poisson'")
+        height[:] = _integrate_dct(gx, grow)
+    else:
+        height[mask] = _integrate_poisson(gx, grow, mask, weights, tol)
+    return _zero_mean_parts(height, mask)
+
+
+def _integrate_dct(gx: np.ndarray, grow: np.ndarray) -> np.ndarray:
+    """Unweighted least squares on a full rectangle, diagonalised by DCT-II."""
+    from scipy.fft import dctn, idctn
+
+    h, w = gx.shape
+    gh = 0.5 * (gx[:, :-1] + gx[:, 1:])
+    gv = 0.5 * (grow[:-1, :] + grow[1:, :])
+    rhs = np.zeros((h, w))  # A^T g: divergence of the edge slopes
+    rhs[:, :-1] -= gh
+    rhs[:, 1:] += gh
+    rhs[:-1, :] -= gv
+    rhs[1:, :] += gv
+    eig = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[:, None] + \
+          (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, :]
+    coeffs = dctn(rhs, type=2, norm="ortho")
+    eig[0, 0] = 1.0
+    coeffs /= eig
+    coeffs[0, 0] = 0.0
+    return idctn(coeffs, type=2, norm="ortho")
+
+
+def _integrate_poisson(gx, grow, mask, weights, tol) -> np.ndarray:
+    """Weighted masked least squares: sparse normal equations, AMG-preconditioned CG.
+
+    Returns the heights of the mask pixels, in row-major order.
+    """
+    import pyamg
+    import scipy.sparse as sp
+
+    inside = mask.ravel()
+    n = int(inside.sum())
+    compact = np.full(mask.size, -1, dtype=np.int64)
+    compact[inside] = np.arange(n)
+    (ha, hb), (va, vb) = _edges(mask)
+    fx, frow = gx.ravel(), grow.ravel()
+    target = np.concatenate([0.5 * (fx[ha] + fx[hb]), 0.5 * (frow[va] + frow[vb])])
+    if weights is None:
+        wt = np.ones(target.size)
+    else:
+        flat = weights.ravel()
+        wt = np.minimum(flat[np.concatenate([ha, va])], flat[np.concatenate([hb, vb])])
+    a = compact[np.concatenate([ha, va])]
+    b = compact[np.concatenate([hb, vb])]
+    if a.size == 0:
+        return np.zeros(n)
+    # L = A^T W A (a weighted graph Laplacian) and rhs = A^T W g. A tiny diagonal
+    # shift makes each part's constant unique (removed afterwards) and keeps
+    # pixels without any weighted neighbour at 0.
+    degree = np.bincount(a, wt, n) + np.bincount(b, wt, n)
+    rhs = np.bincount(b, wt * target, n) - np.bincount(a, wt * target, n)
+    diag = degree + 1e-9 * max(wt.mean(), 1e-12)
+    lap = sp.coo_matrix((np.concatenate([-wt, -wt, diag]),
+                         (np.concatenate([a, b, np.arange(n)]),
+                          np.concatenate([b, a, np.arange(n)]))), shape=(n, n)).tocsr()
+    solver = pyamg.ruge_stuben_solver(lap, max_coarse=500)  # classical AMG: fast setup
+    return solver.solve(rhs, tol=tol, accel="cg", maxiter=400)
+
+
+def _zero_mean_parts(height: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Shift each 4-connected part of the mask to zero mean height."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(mask)
+    if count:
+        means = ndimage.mean(height, labels, index=np.arange(1, count + 1))
+        height = height - np.r_[0.0, means][labels]
+    height[~mask] = np.nan
+    return height
