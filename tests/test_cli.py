@@ -31,7 +31,8 @@ def args_for(sample, out, *extra, sphere=None):
 def test_reconstruct_writes_every_output(sample, tmp_path):
     out = tmp_path / "out"
     assert main(args_for(sample, out, "--mask", str(sample[0] / "mask.png"))) == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
+    defaults = OUTPUT_FILES + ("height.exr", "relief.png", "overview.png")
+    assert sorted(p.name for p in out.iterdir()) == sorted(defaults)
     normals, names = read_image(out / "normal.exr")
     assert names == ["X", "Y", "Z"] and normals.shape == (64, 64, 3)
     truth, _ = read_image(sample[0] / "truth_normal.exr")
