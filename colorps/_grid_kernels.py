@@ -94,7 +94,7 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
                 entry_aux, entry_far, entry_cell, cell_bucket, bucket_start, bucket_h,
                 bucket_mean, bucket_radius, scan_offsets, scan_bound2, n_fine,
                 fine_dd2_max, block, n_blocks, block_start, block_box,
-                block_offsets, block_bound2):
+                block_offsets, block_bound2, entry_bound):
     """Exact nearest entry of one query: (row in ``entries``, squared distance, b, d)."""
     # Projection on the PCA plane and distance from it, in float64.
     pu = 0.0
@@ -171,12 +171,13 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
             rj = max(abs(entry_cell[e, 1] - j) - 1, 0)
             if ri * ri + rj * rj <= fine_dd2_max:
                 continue  # phase 1 tested it
-            lb = 0.0
-            for a in range(n_axes + 1):
-                g = scratch[a] - entry_far[e, a]
-                lb += g * g
-            if _prunable(lb, dmin2):
-                continue
+            if entry_bound:
+                lb = 0.0
+                for a in range(n_axes + 1):
+                    g = scratch[a] - entry_far[e, a]
+                    lb += g * g
+                if _prunable(lb, dmin2):
+                    continue
             n_tests += 1
             d2 = np.float64(_dist2(query, entries, e))
             if d2 < dmin2:
@@ -192,7 +193,7 @@ _CHUNK = 256
 def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry_aux,
            entry_far, entry_cell, cell_bucket, bucket_start, bucket_h, bucket_mean,
            bucket_radius, scan_offsets, scan_bound2, n_fine, fine_dd2_max, block,
-           n_blocks, block_start, block_box, block_offsets, block_bound2,
+           n_blocks, block_start, block_box, block_offsets, block_bound2, entry_bound,
            out_row, out_dist, out_buckets, out_tests):
     """Nearest table row for every query (``prange`` over chunks of queries).
 
@@ -209,7 +210,7 @@ def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry
                 entry_aux, entry_far, entry_cell, cell_bucket, bucket_start, bucket_h,
                 bucket_mean, bucket_radius, scan_offsets, scan_bound2, n_fine,
                 fine_dd2_max, block, n_blocks, block_start, block_box,
-                block_offsets, block_bound2)
+                block_offsets, block_bound2, entry_bound)
             out_row[q] = best
             out_dist[q] = np.sqrt(dmin2)
             out_buckets[q] = nb
