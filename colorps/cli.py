@@ -56,6 +56,18 @@ def _grid_n(text: str):
     return n
 
 
+def _level(text: str):
+    if text == "none":
+        return "none"
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a linear value > 0 or 'none', got {text!r}")
+    return value
+
+
 def _positive_int(text: str):
     try:
         n = int(text)
@@ -96,6 +108,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="bucket grid size (default: round(2 sqrt(table size)))")
     rec.add_argument("--encoding", choices=("auto", "linear", "srgb"), default="auto",
                      help="pixel encoding: auto = integer formats sRGB, float formats linear")
+    rec.add_argument("--clip-level", type=_level, default=None, metavar="V|none",
+                     help="linear value at or above which a measurement is clipped "
+                          "(default: from the bit depth: top code of integer files, "
+                          "none for float files)")
+    rec.add_argument("--dark-level", type=_level, default=None, metavar="V",
+                     help="linear noise floor of one measurement; bands whose OV norm is "
+                          "below V sqrt(m) are too dark (default: 2 codes of integer "
+                          "files, 3.3e-5 for float files)")
+    rec.add_argument("--max-distance", type=_level, default=0.1, metavar="D|none",
+                     help="largest match distance (per band) of a solved pixel; worse "
+                          "matches are reported as 'no good match'")
     rec.add_argument("--no-height", action="store_true",
                      help="skip the height map, relief and overview pictures")
     rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=None,
@@ -153,10 +176,10 @@ def _read_mask(path: str, shape) -> np.ndarray:
 def run_reconstruct(scene_patterns, gauge_patterns, sphere, out, *, gauge_albedo=1.0,
                     mode="colour", band=None, mask=None, threads=None, grid_n=None,
                     encoding="auto", overwrite=False, progress=True, height=True,
-                    mesh=None):
+                    mesh=None, clip_level=None, dark_level=None, max_distance=0.1):
     """Read, reconstruct and write: the work behind ``colorps reconstruct``."""
     from .gauge import Gauge, find_sphere
-    from .io import expand_paths, read_stack
+    from .io import expand_paths, input_levels, read_stack
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
 
@@ -177,16 +200,23 @@ def run_reconstruct(scene_patterns, gauge_patterns, sphere, out, *, gauge_albedo
             band = int(band)
         except ValueError:
             raise InputError(f"--band: expected 'luminance' or a channel index, got {band!r}") from None
+    auto_clip, auto_dark = input_levels(scene_paths[0], encoding)
+    clip_level = auto_clip if clip_level is None else None if clip_level == "none" else clip_level
+    dark_level = auto_dark if dark_level in (None, "none") else dark_level
+    max_distance = None if max_distance == "none" else max_distance
     found = find_sphere(gauge_stack) if sphere == "auto" else sphere
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
     scene_mask = None if mask is None else _read_mask(mask, scene.shape[1:3])
     result = reconstruct(scene, gauge_stack, gauge, mode=mode, band=band, mask=scene_mask,
-                         grid_n=grid_n, threads=threads, progress=progress)
+                         grid_n=grid_n, threads=threads, progress=progress,
+                         clip_level=clip_level, min_norm=dark_level * np.sqrt(scene.shape[0]),
+                         max_distance=max_distance)
     report = dict(
         colorps_version=__version__, scene=[str(p) for p in scene_paths],
         gauge=[str(p) for p in gauge_paths], sphere=dict(zip(("cx", "cy", "r"), found)),
         sphere_found_automatically=sphere == "auto", gauge_albedo=gauge_albedo, mode=mode,
-        band=band, mask=mask, encoding=encoding, channels=names,
+        band=band, mask=mask, encoding=encoding, channels=names, clip_level=clip_level,
+        dark_level=dark_level, max_distance=max_distance,
     )
     extra = {}
     if height:
@@ -287,16 +317,25 @@ def run_demo(out, data=None, mode="colour", overwrite=False):
     return result
 
 
+def _warning_line(message, category, filename, lineno, line=None):
+    return f"colorps: warning: {message}\n"
+
+
 def main(argv=None) -> int:
+    import warnings
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    warnings.formatwarning = _warning_line
     try:
         if args.command == "reconstruct":
             result = run_reconstruct(
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
                 mode=args.mode, band=args.band, mask=args.mask, threads=args.threads,
                 grid_n=args.grid_n, encoding=args.encoding, overwrite=args.overwrite,
-                progress=not args.quiet, height=not args.no_height, mesh=args.mesh)
+                progress=not args.quiet, height=not args.no_height, mesh=args.mesh,
+                clip_level=args.clip_level, dark_level=args.dark_level,
+                max_distance=args.max_distance)
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s['solved']} of {s['pixels']} pixels "

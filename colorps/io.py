@@ -28,10 +28,53 @@ import numpy as np
 from .errors import ImageReadError, InputError, OutputError
 
 __all__ = ["read_image", "read_stack", "write_image", "expand_paths", "srgb_decode",
-           "srgb_encode", "Encoding"]
+           "srgb_encode", "input_levels", "LossyInputWarning", "Encoding"]
 
 Encoding = Literal["auto", "linear", "srgb"]
 _INTEGER_TYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32")
+_MAX_CODE = {"uint8": 255, "int8": 127, "uint16": 65535, "int16": 32767,
+             "uint32": 4294967295, "int32": 2147483647}
+#: Default per-measurement dark level of floating-point inputs (linear units).
+FLOAT_DARK_LEVEL = 1e-4 / 3
+
+
+class LossyInputWarning(UserWarning):
+    """An input uses lossy compression (JPEG): results will be noisier."""
+
+
+def _header(path: Path):
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageReadError(f"{path}: cannot read image ({oiio.geterror().strip()})")
+    try:
+        return inp.format_name(), str(inp.spec().format)
+    finally:
+        inp.close()
+
+
+def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float]:
+    """Clip level and dark level (linear) implied by an image file's pixel type.
+
+    Integer files: a measurement is clipped at the top code (linear value of
+    code - 1/2) and dark below 2 codes, both decoded with ``encoding`` like the
+    pixels themselves. Floating-point files: nothing is clipped and the dark
+    level is 1e-4 / 3 (linear).
+
+    Returns
+    -------
+    clip_level : float or None
+    dark_level : float
+    """
+    _, pixel_type = _header(Path(path))
+    if pixel_type not in _INTEGER_TYPES:
+        return None, FLOAT_DARK_LEVEL
+    top = _MAX_CODE[pixel_type]
+    levels = np.array([(top - 0.5) / top, 2.0 / top], dtype=np.float32)
+    if encoding in ("auto", "srgb"):
+        levels = srgb_decode(levels)
+    return float(levels[0]), float(levels[1])
 
 
 def srgb_decode(values) -> np.ndarray:
@@ -85,12 +128,18 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
         raise ImageReadError(f"{path}: cannot read image ({oiio.geterror().strip()})")
     try:
         spec = inp.spec()
+        file_format = inp.format_name()
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         problem = inp.geterror().strip()
     finally:
         inp.close()
     if pixels is None or problem:
         raise ImageReadError(f"{path}: corrupt or truncated image ({problem or 'no data'})")
+    if file_format == "jpeg":
+        import warnings
+
+        warnings.warn(f"{path}: JPEG is lossy 8-bit; expect noisier normals than from "
+                      "raw, 16-bit TIFF or EXR", LossyInputWarning, stacklevel=2)
     pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
     names = list(spec.channelnames)
     keep = [k for k in range(spec.nchannels) if k != spec.alpha_channel]

@@ -9,7 +9,10 @@ normal.png      8-bit preview (n + 1) / 2 in R, G, B; black where not solved
 albedo.exr      float32 linear albedo, one channel per input band (input names)
 albedo.png      sRGB preview (colour-science), black where not solved
 quality.exr     float32 match distance (signature units); NaN where not solved
-report.json     inputs, parameters, statistics, unsolved pixels by reason
+invalid.png     why pixels are not solved, one colour per reason: black solved,
+                grey background, blue too dark, yellow clipped, magenta
+                invalid value (NaN, Inf, negative), red no good match
+report.json     inputs, parameters, statistics, pixels by reason
 height.exr      float32 height in pixels (see :mod:`colorps.integrate`), optional
 relief.png      shaded relief of the height map, optional
 overview.png    scene, normals, albedo and relief side by side, optional
@@ -35,12 +38,15 @@ import numpy as np
 
 from .errors import OutputError
 from .io import srgb_encode, write_image
-from .reconstruct import Reconstruction
+from .reconstruct import REASONS, Reconstruction
 
 __all__ = ["OUTPUT_FILES", "OPTIONAL_FILES", "prepare_output_dir", "save_reconstruction"]
 
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
-                "report.json")
+                "invalid.png", "report.json")
+#: Colours of invalid.png, by reason code (see colorps.reconstruct.REASONS).
+REASON_COLOURS = {0: (0, 0, 0), 1: (64, 64, 64), 2: (40, 90, 255), 3: (255, 220, 0),
+                  4: (255, 0, 255), 5: (255, 40, 40)}
 #: Written when asked for (height maps are on by default in the CLI).
 OPTIONAL_FILES = ("height.exr", "relief.png", "overview.png", "mesh.ply", "mesh.obj")
 
@@ -111,6 +117,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     albedo_png = _preview(np.where(result.solved[..., None], result.albedo, 0.0))
     doc = dict(report or {})
     doc["statistics"] = result.stats
+    doc["reasons"] = {str(k): v for k, v in REASONS.items()}
     doc["conventions"] = ("camera-space normals: x right, y up, z towards the camera; "
                           "pixel (x, y) = (column, row); linear values")
     doc["files"] = list(OUTPUT_FILES) + sorted(extra_files or {})
@@ -124,6 +131,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         write_image(tmp / "albedo.exr", result.albedo, channel_names=list(channel_names))
         write_image(tmp / "albedo.png", albedo_png, dtype="uint8")
         write_image(tmp / "quality.exr", result.quality, channel_names=["Q"])
+        write_image(tmp / "invalid.png", _reason_picture(result.reason), dtype="uint8")
         for name, writer in (extra_files or {}).items():
             writer(tmp / name)
         (tmp / "report.json").write_text(json.dumps(doc, indent=2, default=_jsonable))
@@ -134,6 +142,13 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         return written
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _reason_picture(reason: np.ndarray) -> np.ndarray:
+    table = np.zeros((256, 3), dtype=np.float32)
+    for code, rgb in REASON_COLOURS.items():
+        table[code] = np.array(rgb) / 255.0
+    return table[reason]
 
 
 def _jsonable(value):

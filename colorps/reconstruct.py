@@ -25,12 +25,15 @@ from .gauge import Gauge, parse_albedo
 from .grid import BucketGrid
 from .signatures import DEFAULT_MIN_NORM, compute_signatures
 
-__all__ = ["Reconstruction", "reconstruct", "REASONS", "MIN_IMAGES"]
+__all__ = ["Reconstruction", "reconstruct", "REASONS", "MIN_IMAGES", "DEFAULT_MAX_DISTANCE"]
 
 #: Codes of the per-pixel ``reason`` map.
-REASONS = {0: "solved", 1: "background", 2: "too dark", 3: "non-finite"}
+REASONS = {0: "solved", 1: "background", 2: "too dark", 3: "clipped", 4: "invalid value",
+           5: "no good match"}
 #: Fewest images each mode can work with.
 MIN_IMAGES = {"mono": 3, "colour": 2}
+#: Default largest match distance (per band, see ``quality``) of a solved pixel.
+DEFAULT_MAX_DISTANCE = 0.1
 _CHUNK = 1 << 18
 
 
@@ -47,16 +50,20 @@ class Reconstruction:
         Intrinsic albedo per input band (linear, relative to the gauge albedo);
         NaN where not solved.
     quality : (H, W) ndarray of float32
-        Match distance: Euclidean distance between the scene signature and the
-        nearest gauge signature (0 = perfectly explained; a colour signature
-        has c unit blocks, so distances reach up to 2 sqrt(c)). NaN where not
-        solved.
+        Match distance per band: the Euclidean distance between the scene
+        signature and the nearest gauge signature divided by sqrt(number of
+        bands matched), so mono and colour values compare (0 = perfectly
+        explained; 0.1 is about 6 degrees between the two OVs). NaN where no
+        match was attempted.
     solved : (H, W) ndarray of bool
     reason : (H, W) ndarray of uint8
         Why a pixel is not solved; codes in :data:`REASONS`.
+    bands_used : (H, W) ndarray of uint8
+        Bit k set when band k of the signature was matched (colour mode falls
+        back to the valid bands of a pixel).
     stats : dict
         Table size, grid N, mean buckets b and entries d per lookup, seconds
-        per stage, unsolved counts by reason.
+        per stage, pixels by reason, grids built per band subset.
     height : (H, W) ndarray or None
         Height map, when integrated (see :func:`colorps.integrate`).
     """
@@ -66,6 +73,7 @@ class Reconstruction:
     quality: np.ndarray
     solved: np.ndarray
     reason: np.ndarray
+    bands_used: np.ndarray
     stats: dict = field(default_factory=dict)
     height: np.ndarray | None = None
 
@@ -74,7 +82,9 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
                 mode: Literal["colour", "mono"] = "colour", mask=None,
                 band: int | Literal["luminance"] | None = None, colourspace: str = "sRGB",
                 grid_n: int | Literal["auto"] | None = None, threads: int | None = None,
-                min_norm: float = DEFAULT_MIN_NORM, progress: bool = False) -> Reconstruction:
+                min_norm: float = DEFAULT_MIN_NORM, clip_level: float | None = None,
+                max_distance: float | None = DEFAULT_MAX_DISTANCE,
+                progress: bool = False) -> Reconstruction:
     """Recover normals and intrinsic colour of a scene from a gauge.
 
     Parameters
@@ -97,13 +107,30 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
     threads : int, optional
         Threads for the lookup (default: all).
     min_norm : float, optional
-        OVs with a smaller norm (linear units) are "too dark" to solve.
+        A band whose OV norm is at most this (linear units) is "too dark".
+    clip_level : float, optional
+        Measurements at or above this linear value are clipped (None: no
+        clipping; the CLI derives it from the files' bit depth).
+    max_distance : float or None, optional
+        Pixels whose ``quality`` exceeds this are left unsolved as "no good
+        match" (cast shadows, highlights, interreflections, background). None
+        keeps every match.
     progress : bool, optional
         Show a progress bar.
 
     Returns
     -------
     Reconstruction
+
+    Notes
+    -----
+    In colour mode a pixel with some bands too dark, clipped or invalid is
+    solved from its remaining bands, with a bucket grid over those bands of the
+    gauge table (built once per band subset, when first needed), provided they
+    still fix a normal (bands x (m - 1) >= 2). Every band then gets its albedo
+    from the found normal: eq. 6 when all its measurements are usable, else the
+    least-squares scale over its usable (finite, non-negative, unclipped)
+    measurements.
 
     Examples
     --------
@@ -112,9 +139,9 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
     >>> scene = synth.smiley_surface(64)
     >>> ball = synth.sphere_surface(101, 48)
     >>> result = reconstruct(synth.render(scene, lights), synth.render(ball, lights),
-    ...                      Gauge.from_sphere((101, 101), 50, 50, 48))
-    >>> result.normals.shape, result.albedo.shape
-    ((64, 64, 3), (64, 64, 3))
+    ...                      Gauge.from_sphere((101, 101), 50, 50, 48), mask=scene.mask)
+    >>> result.normals.shape, result.albedo.shape, int(result.solved.sum()) == scene.mask.sum()
+    ((64, 64, 3), (64, 64, 3), True)
     """
     t_start = time.perf_counter()
     scene = check_stack(scene, "scene")
@@ -135,6 +162,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
         hint = ("" if mode == "colour" else
                 "; colour mode can work with 2 images lit by mixed-colour lights")
         raise InputError(f"{mode} mode needs at least {MIN_IMAGES[mode]} images, got {m}{hint}")
+    if mode == "colour" and m < 3 and c < 2:
+        raise InputError("colour mode with 2 images needs several bands (mixed-colour lights)")
+    if max_distance is not None and not max_distance > 0:
+        raise InputError(f"max_distance: expected a value > 0 or None, got {max_distance!r}")
     if mask is None:
         mask = np.ones((h, w), dtype=bool)
     mask = np.asarray(mask)
@@ -143,76 +174,129 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
     mask = mask.astype(bool)
     gauge_albedo = parse_albedo(gauge.albedo, c)
 
-    # Signatures: scene and gauge, in the chosen mode, and per-band norms for eq. 6.
     t0 = time.perf_counter()
-    options = dict(band=band, colourspace=colourspace, min_norm=min_norm)
+    options = dict(band=band, colourspace=colourspace, min_norm=min_norm,
+                   clip_level=clip_level)
     scene_sig = compute_signatures(scene, mode, **options)
     gauge_sig = compute_signatures(gauge_stack, mode, **options)
-    gauge_bands = compute_signatures(gauge_stack, "colour", min_norm=min_norm)
-    in_table = gauge.mask & gauge_sig.valid
-    if in_table.sum() < 3:
-        raise InputError("gauge: fewer than 3 usable gauge pixels (is the gauge lit and "
-                         "inside the sphere mask?)")
-    table = gauge_sig.signatures[in_table]
-    table_normals = gauge.normals[in_table]
-    table_norms = gauge_bands.norms[in_table]  # (K, c)
-    finite = np.isfinite(scene).all(axis=(0, 3))
-    todo = mask & scene_sig.valid
+    n_bands = scene_sig.bands
+    band_bits = 1 << np.arange(n_bands)
+    scene_code = (scene_sig.band_valid * band_bits).sum(axis=-1)
+    gauge_code = (gauge_sig.band_valid * band_bits).sum(axis=-1)
     t_signatures = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    queries = scene_sig.signatures[todo]
-    grid_options = {}
-    if grid_n == "auto":
-        grid_options["sample"] = queries[:: max(1, len(queries) // 4000)] if len(queries) else None
-    grid = BucketGrid(table, grid_n, **grid_options)
-    t_build = time.perf_counter() - t0
+    normals = np.full((h, w, 3), np.nan, dtype=np.float32)
+    quality = np.full((h, w), np.nan, dtype=np.float32)
+    match = np.full((h, w), -1, dtype=np.int64)  # flat index of the matched gauge pixel
+    bands_used = np.zeros((h, w), dtype=np.uint8)
+    grids, t_build, t_lookup = [], 0.0, 0.0
+    buckets_total, tests_total = 0.0, 0.0
+    for code in sorted(np.unique(scene_code[mask]), reverse=True):
+        chosen = [k for k in range(n_bands) if code >> k & 1]
+        pixels = mask & (scene_code == code)
+        if len(chosen) * (m - 1) < 2:
+            continue  # these bands cannot fix a normal: reported below
+        table_px = gauge.mask & ((gauge_code & code) == code)
+        if table_px.sum() < 3:
+            continue
+        cols = np.concatenate([np.arange(k * m, (k + 1) * m) for k in chosen])
+        t0 = time.perf_counter()
+        table = np.ascontiguousarray(gauge_sig.signatures[table_px][:, cols])
+        queries = np.ascontiguousarray(scene_sig.signatures[pixels][:, cols])
+        extra = {}
+        if grid_n == "auto":
+            extra["sample"] = queries[:: max(1, len(queries) // 4000)]
+        grid = BucketGrid(table, grid_n, **extra)
+        t_build += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        rows, dist, b_sum, d_sum = _lookup(grid, queries, threads, progress,
+                                           f"matching ({len(chosen)} band(s))")
+        t_lookup += time.perf_counter() - t0
+        buckets_total += b_sum
+        tests_total += d_sum
+        normals[pixels] = gauge.normals[table_px][rows]
+        quality[pixels] = dist / np.sqrt(len(chosen))
+        match[pixels] = np.flatnonzero(table_px)[rows]
+        bands_used[pixels] = code
+        grids.append(dict(bands=chosen, table_size=int(table.shape[0]), grid_n=grid.n,
+                          pixels=int(pixels.sum())))
 
-    t0 = time.perf_counter()
-    rows = np.empty(len(queries), dtype=np.int64)
-    dist = np.empty(len(queries), dtype=np.float32)
-    buckets = np.zeros(len(queries), dtype=np.int32)
-    tests = np.zeros(len(queries), dtype=np.int32)
+    matched = match >= 0
+    solved = matched.copy()
+    if max_distance is not None:
+        solved &= quality <= max_distance
+    normals[~solved] = np.nan
+    albedo = np.full((h, w, c), np.nan, dtype=np.float32)
+    albedo[solved] = _albedo(scene[:, solved], gauge_stack.reshape(m, -1, c)[:, match[solved]],
+                             gauge_albedo, clip_level)
+
+    # Why unsolved pixels are unsolved (worst problem of any band first).
+    reason = np.zeros((h, w), dtype=np.uint8)
+    dark = scene_sig.band_dark.any(axis=-1)
+    clipped = scene_sig.band_clipped.any(axis=-1)
+    invalid = scene_sig.band_invalid_value.any(axis=-1)
+    unsolved = mask & ~solved
+    reason[unsolved & dark] = 2
+    reason[unsolved & clipped] = 3
+    reason[unsolved & invalid] = 4
+    reason[unsolved & matched] = 5
+    reason[~mask] = 1
+    counts = {REASONS[k]: int(np.count_nonzero(reason == k)) for k in REASONS}
+    n_matched = int(matched.sum())
+    full = (1 << n_bands) - 1
+    stats = dict(
+        images=m, bands=c, mode=mode, signature_dims=n_bands * m,
+        table_size=int((gauge.mask & (gauge_code == full)).sum()),
+        grid_n=grids[0]["grid_n"] if grids and grids[0]["bands"] == list(range(n_bands))
+        else None,
+        grids=grids,
+        buckets_per_lookup=buckets_total / n_matched if n_matched else 0.0,
+        tests_per_lookup=tests_total / n_matched if n_matched else 0.0,
+        pixels=h * w, solved=int(solved.sum()),
+        solved_from_band_subset=int((solved & (bands_used != full)).sum()),
+        pixels_by_reason=counts, clip_level=clip_level, min_norm=min_norm,
+        max_distance=max_distance,
+        seconds=dict(signatures=t_signatures, grid=t_build, lookup=t_lookup,
+                     total=time.perf_counter() - t_start),
+    )
+    return Reconstruction(normals, albedo, quality, solved, reason, bands_used, stats)
+
+
+def _lookup(grid: BucketGrid, queries: np.ndarray, threads, progress: bool, label: str):
+    """Query in chunks (progress bar); return rows, distances and summed b, d."""
     from tqdm.auto import tqdm
 
-    with tqdm(total=len(queries), desc="matching", unit="px", unit_scale=True,
+    rows = np.empty(len(queries), dtype=np.int64)
+    dist = np.empty(len(queries), dtype=np.float32)
+    b_sum = d_sum = 0.0
+    with tqdm(total=len(queries), desc=label, unit="px", unit_scale=True,
               disable=not progress, leave=False) as bar:
         for a in range(0, len(queries), _CHUNK):
             part = slice(a, a + _CHUNK)
             rows[part], dist[part], st = grid.query(queries[part], threads=threads,
                                                     return_stats=True)
-            buckets[part], tests[part] = st.buckets_per_query, st.tests_per_query
+            b_sum += float(st.buckets_per_query.sum())
+            d_sum += float(st.tests_per_query.sum())
             bar.update(len(rows[part]))
-    t_lookup = time.perf_counter() - t0
-
-    normals = np.full((h, w, 3), np.nan, dtype=np.float32)
-    albedo = np.full((h, w, c), np.nan, dtype=np.float32)
-    quality = np.full((h, w), np.nan, dtype=np.float32)
-    normals[todo] = table_normals[rows]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        albedo[todo] = (_band_norms(scene_sig, scene, min_norm)[todo]
-                        / table_norms[rows] * gauge_albedo)
-    quality[todo] = dist
-
-    reason = np.zeros((h, w), dtype=np.uint8)
-    reason[~finite] = 3
-    reason[finite & ~scene_sig.valid] = 2
-    reason[~mask] = 1
-    counts = {REASONS[k]: int(np.count_nonzero(reason == k)) for k in REASONS}
-    stats = dict(
-        images=m, bands=c, mode=mode, table_size=int(table.shape[0]), grid_n=grid.n,
-        signature_dims=int(table.shape[1]),
-        buckets_per_lookup=float(buckets.mean()) if len(buckets) else 0.0,
-        tests_per_lookup=float(tests.mean()) if len(tests) else 0.0,
-        pixels=h * w, solved=int(todo.sum()), unsolved_by_reason=counts,
-        seconds=dict(signatures=t_signatures, grid=t_build, lookup=t_lookup,
-                     total=time.perf_counter() - t_start),
-    )
-    return Reconstruction(normals, albedo, quality, todo, reason, stats)
+    return rows, dist, b_sum, d_sum
 
 
-def _band_norms(sig, scene: np.ndarray, min_norm: float) -> np.ndarray:
-    """Per-band OV norms of every input band (mono signatures keep only one)."""
-    if sig.mode == "colour":
-        return sig.norms
-    return compute_signatures(scene, "colour", min_norm=min_norm).norms
+def _albedo(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_albedo: np.ndarray,
+            clip_level: float | None) -> np.ndarray:
+    """Per-band albedo of matched pixels (eq. 6, or least squares on usable values).
+
+    Parameters are (m, P, c) observation vectors of the scene pixels and of
+    their matched gauge pixels, and the (c,) gauge albedo.
+    """
+    usable = np.isfinite(scene_ov) & (scene_ov >= 0)
+    if clip_level is not None:
+        usable &= scene_ov < clip_level
+    s = np.where(usable, scene_ov, 0.0).astype(np.float64)
+    g = gauge_ov.astype(np.float64)
+    all_usable = usable.all(axis=0)
+    g_used = np.where(usable, g, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a black gauge band: NaN
+        eq6 = np.sqrt((s * s).sum(axis=0)) / np.sqrt((g * g).sum(axis=0))
+        lsq = (s * g_used).sum(axis=0) / (g_used * g_used).sum(axis=0)
+        ratio = np.where(all_usable, eq6, lsq)
+    return (ratio * gauge_albedo).astype(np.float32)

@@ -40,14 +40,17 @@ class SignatureSet:
     Attributes
     ----------
     signatures : (H, W, B * m) ndarray of float32
-        Band-major concatenation of per-band unit signatures; zero where the
-        pixel is invalid.
+        Band-major concatenation of per-band unit signatures; the block of a
+        band that is not valid is zero.
     norms : (H, W, B) ndarray of float32
         Euclidean norm of each band's OV (needed for albedo, eq. 6).
     valid : (H, W) ndarray of bool
-        True where every band's OV norm exceeds ``min_norm`` (and is finite).
+        True where every band is valid.
     band_valid : (H, W, B) ndarray of bool
-        The same test per band.
+        A band is valid when none of its m measurements is invalid (NaN, Inf,
+        negative) or clipped and its OV norm exceeds ``min_norm``.
+    band_invalid_value, band_clipped, band_dark : (H, W, B) ndarray of bool
+        Why a band is not valid (a band may have several reasons).
     mode : {"colour", "mono"}
     bands : int
         Number of bands B in the signature (c in colour mode, 1 in mono mode).
@@ -59,6 +62,9 @@ class SignatureSet:
     norms: np.ndarray
     valid: np.ndarray
     band_valid: np.ndarray
+    band_invalid_value: np.ndarray
+    band_clipped: np.ndarray
+    band_dark: np.ndarray
     mode: str
     bands: int
     images: int
@@ -95,23 +101,25 @@ def luminance(stack, colourspace: str = "sRGB") -> np.ndarray:
 
 
 def _mono_band(stack: np.ndarray, band: int | Literal["luminance"] | None,
-               colourspace: str) -> np.ndarray:
+               colourspace: str) -> tuple[np.ndarray, list[int]]:
+    """The single band of mono mode, and the input bands it is made from."""
     c = stack.shape[-1]
     if band is None:
         band = "luminance" if c == 3 else 0
     if isinstance(band, str):
         if band != "luminance":
             raise InputError(f"band: expected a channel index or 'luminance', got {band!r}")
-        return luminance(stack, colourspace)[..., np.newaxis]
+        return luminance(stack, colourspace)[..., np.newaxis], list(range(c))
     if isinstance(band, bool) or not isinstance(band, (int, np.integer)) or not 0 <= band < c:
         raise InputError(f"band: expected a channel index in 0..{c - 1}, got {band!r}")
-    return stack[..., band:band + 1]
+    return stack[..., band:band + 1], [int(band)]
 
 
 def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
                        band: int | Literal["luminance"] | None = None,
                        colourspace: str = "sRGB",
-                       min_norm: float = DEFAULT_MIN_NORM) -> SignatureSet:
+                       min_norm: float = DEFAULT_MIN_NORM,
+                       clip_level: float | None = None) -> SignatureSet:
     """Normalise the observation vectors of a stack into signatures.
 
     Parameters
@@ -129,6 +137,9 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     min_norm : float, optional
         A band's OV whose Euclidean norm is at most this (linear units) cannot be
         normalised: the pixel is reported invalid, never turned into NaN.
+    clip_level : float, optional
+        Measurements at or above this linear value are clipped (saturated) and
+        make their band invalid. None: nothing is clipped.
 
     Returns
     -------
@@ -145,30 +156,42 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     """
     data = check_stack(stack)
     m = data.shape[0]
-    if mode == "colour":
-        bands = data
-    elif mode == "mono":
-        bands = _mono_band(data, band, colourspace)
-    else:
+    if mode not in ("colour", "mono"):
         raise InputError(f"mode: expected 'colour' or 'mono', got {mode!r}")
     if not np.isfinite(min_norm) or min_norm < 0:
         raise InputError(f"min_norm: expected a finite value >= 0, got {min_norm!r}")
+    if clip_level is not None and not clip_level > 0:
+        raise InputError(f"clip_level: expected a value > 0 or None, got {clip_level!r}")
+
+    # Per input band and pixel: any invalid (NaN, Inf, negative) or clipped measurement.
+    bad = ~(data >= 0) | ~np.isfinite(data)  # NaN compares False
+    bad_any = bad.any(axis=0)  # (H, W, c)
+    clipped_any = ((data >= clip_level).any(axis=0) if clip_level is not None
+                   else np.zeros(bad_any.shape, dtype=bool))
+    clean = np.where(bad, 0.0, data).astype(np.float32)
+    if mode == "colour":
+        bands = clean
+    else:
+        bands, sources = _mono_band(clean, band, colourspace)
+        bad_any = bad_any[..., sources].any(axis=-1, keepdims=True)
+        clipped_any = clipped_any[..., sources].any(axis=-1, keepdims=True)
 
     ov = np.moveaxis(bands, 0, -1)  # (H, W, B, m)
-    finite = np.isfinite(ov).all(axis=-1)
-    ov = np.where(finite[..., None], ov, 0.0).astype(np.float32)
     norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
-    band_valid = finite & (norms > min_norm)
+    dark = ~bad_any & (norms <= min_norm)
+    band_valid = ~bad_any & ~clipped_any & ~dark
     safe = np.where(band_valid, norms, 1.0)
     sig = np.where(band_valid[..., None], ov / safe[..., None], 0.0).astype(np.float32)
     h, w, b = band_valid.shape
     valid = band_valid.all(axis=-1)
-    sig[~valid] = 0.0
     return SignatureSet(
         signatures=np.ascontiguousarray(sig.reshape(h, w, b * m)),
         norms=norms.astype(np.float32),
         valid=valid,
         band_valid=band_valid,
+        band_invalid_value=bad_any,
+        band_clipped=clipped_any,
+        band_dark=dark,
         mode=mode,
         bands=b,
         images=m,

@@ -1,9 +1,12 @@
+import contextlib
+
 import colour
 import numpy as np
 import pytest
 
 from colorps import ImageReadError, InputError, OutputError
-from colorps.io import expand_paths, read_image, read_stack, srgb_decode, write_image
+from colorps.io import (LossyInputWarning, expand_paths, input_levels, read_image, read_stack,
+                        srgb_decode, write_image)
 
 
 @pytest.mark.parametrize("ext, dtype, channels, tol", [
@@ -32,10 +35,14 @@ def test_integer_formats_decode_srgb(tmp_path, rng, ext, dtype, step):
     if ext == ".jpg":
         encoded = np.full((16, 16, 3), 0.5)
     path = write_image(tmp_path / f"img{ext}", encoded, dtype=dtype)
-    linear, _ = read_image(path)
+    lossy = pytest.warns(LossyInputWarning, match="JPEG is lossy") if ext == ".jpg" else \
+        contextlib.nullcontext()
+    with lossy:
+        linear, _ = read_image(path)
     expected = colour.cctf_decoding(encoded, function="sRGB")
     np.testing.assert_allclose(linear, expected, atol=step if ext == ".jpg" else 1e-6)
-    raw, _ = read_image(path, "linear")
+    with lossy:
+        raw, _ = read_image(path, "linear")
     np.testing.assert_allclose(raw, encoded, atol=step if ext == ".jpg" else 1e-6)
 
 
@@ -114,3 +121,16 @@ def test_expand_paths_natural_order_and_lists(tmp_path):
         expand_paths(str(tmp_path / "none*.exr"))
     with pytest.raises(ImageReadError, match="cannot read list file"):
         expand_paths("@" + str(tmp_path / "nolist.txt"))
+
+
+def test_input_levels_follow_bit_depth(tmp_path):
+    png8 = write_image(tmp_path / "a.png", np.ones((2, 2, 3)), dtype="uint8")
+    png16 = write_image(tmp_path / "b.png", np.ones((2, 2, 3)), dtype="uint16")
+    exr = write_image(tmp_path / "c.exr", np.ones((2, 2, 3)))
+    clip8, dark8 = input_levels(png8)
+    assert clip8 == pytest.approx(colour.cctf_decoding(254.5 / 255, "sRGB"), rel=1e-5)
+    assert dark8 == pytest.approx(colour.cctf_decoding(2 / 255, "sRGB"), rel=1e-5)
+    assert input_levels(png8, "linear") == pytest.approx((254.5 / 255, 2 / 255), rel=1e-6)
+    assert input_levels(png16)[0] > clip8 and input_levels(png16)[1] < dark8
+    clip, dark = input_levels(exr)
+    assert clip is None and 0 < dark < 1e-3

@@ -119,11 +119,11 @@ def test_reasons_and_stats():
     mask = scene.mask.copy()
     mask[:, :10] = False
     result = reconstruct(stack, synth.render(ball, lighting), gauge, mask=mask)
-    assert result.reason[40, 40] == 3 and not result.solved[40, 40]
+    assert result.reason[40, 40] == 4 and not result.solved[40, 40]
     assert (result.reason[~mask] == 1).all()
     assert (result.reason[mask & ~scene.mask] == 2).all()  # black background
-    by_reason = result.stats["unsolved_by_reason"]
-    assert by_reason["non-finite"] == 1 and by_reason["solved"] == result.solved.sum()
+    by_reason = result.stats["pixels_by_reason"]
+    assert by_reason["invalid value"] == 1 and by_reason["solved"] == result.solved.sum()
     assert set(result.stats["seconds"]) == {"signatures", "grid", "lookup", "total"}
 
 

@@ -31,8 +31,30 @@ def test_invalid_pixels_are_masked_not_nan(rng):
     expected[0, 0] = expected[1, 1] = expected[2, 2] = expected[0, 2] = False
     np.testing.assert_array_equal(sig.valid, expected)
     assert sig.band_valid[0, 0].tolist() == [True, False, True]
-    assert (sig.signatures[~sig.valid] == 0).all()
+    blocks = sig.signatures.reshape(3, 3, 3, 4)
+    assert (blocks[~sig.band_valid] == 0).all()  # invalid band blocks are zero
+    np.testing.assert_allclose(np.linalg.norm(blocks[sig.band_valid], axis=-1), 1, rtol=1e-6)
     assert np.isfinite(sig.norms).all()
+    assert sig.band_dark[0, 0, 1] and sig.band_dark[1, 1].all() and sig.band_dark[0, 2, 2]
+    assert sig.band_invalid_value[2, 2].tolist() == [True, False, False]
+
+
+def test_clipped_and_negative_measurements(rng):
+    stack = rng.uniform(0.1, 0.5, (4, 2, 2, 3)).astype(np.float32)
+    stack[1, 0, 0, 0] = 1.0   # saturated red in one image
+    stack[2, 1, 1, 2] = -0.2  # negative blue
+    sig = compute_signatures(stack, "colour", clip_level=0.99)
+    assert sig.band_clipped[0, 0].tolist() == [True, False, False]
+    assert sig.band_invalid_value[1, 1].tolist() == [False, False, True]
+    assert sig.valid.sum() == 2
+    unclipped = compute_signatures(stack, "colour")  # no clip level: nothing clipped
+    assert unclipped.band_valid[0, 0].all()
+    mono = compute_signatures(stack, "mono", clip_level=0.99)  # luminance mixes bands
+    assert not mono.valid[0, 0] and not mono.valid[1, 1] and mono.band_clipped[0, 0, 0]
+    green = compute_signatures(stack, "mono", band=1, clip_level=0.99)
+    assert green.valid.all()
+    with pytest.raises(InputError, match="clip_level"):
+        compute_signatures(stack, clip_level=0)
 
 
 def test_mono_luminance_matches_colour_science(rng):
