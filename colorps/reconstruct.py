@@ -21,11 +21,17 @@ import numpy as np
 
 from ._checks import check_stack
 from .errors import InputError
+
+
+class GaugeWarning(UserWarning):
+    """The gauge images lose many pixels (clipping, darkness, bad values)."""
+
 from .gauge import Gauge, parse_albedo
 from .grid import BucketGrid
 from .signatures import DEFAULT_MIN_NORM, compute_signatures
 
-__all__ = ["Reconstruction", "reconstruct", "REASONS", "MIN_IMAGES", "DEFAULT_MAX_DISTANCE"]
+__all__ = ["Reconstruction", "reconstruct", "REASONS", "MIN_IMAGES", "DEFAULT_MAX_DISTANCE",
+           "GaugeWarning"]
 
 #: Codes of the per-pixel ``reason`` map.
 REASONS = {0: "solved", 1: "background", 2: "too dark", 3: "clipped", 4: "invalid value",
@@ -48,7 +54,8 @@ class Reconstruction:
         where not solved.
     albedo : (H, W, c) ndarray of float32
         Intrinsic albedo per input band (linear, relative to the gauge albedo);
-        NaN where not solved.
+        NaN where not solved, and in a band whose usable measurements cannot
+        fix its scale (e.g. every lit measurement clipped).
     quality : (H, W) ndarray of float32
         Match distance per band: the Euclidean distance between the scene
         signature and the nearest gauge signature divided by sqrt(number of
@@ -180,6 +187,13 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
     scene_sig = compute_signatures(scene, mode, **options)
     gauge_sig = compute_signatures(gauge_stack, mode, **options)
     n_bands = scene_sig.bands
+    usable_gauge = (gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum()
+    if usable_gauge < 0.8:
+        import warnings
+
+        warnings.warn(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
+                      "(clipped, too dark or invalid): check the gauge's exposure",
+                      GaugeWarning, stacklevel=2)
     band_bits = 1 << np.arange(n_bands)
     scene_code = (scene_sig.band_valid * band_bits).sum(axis=-1)
     gauge_code = (gauge_sig.band_valid * band_bits).sum(axis=-1)
@@ -256,6 +270,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
         solved_from_band_subset=int((solved & (bands_used != full)).sum()),
         pixels_by_reason=counts, clip_level=clip_level, min_norm=min_norm,
         max_distance=max_distance,
+        gauge_usable_fraction=float(usable_gauge),
         seconds=dict(signatures=t_signatures, grid=t_build, lookup=t_lookup,
                      total=time.perf_counter() - t_start),
     )
@@ -295,8 +310,13 @@ def _albedo(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_albedo: np.ndarray
     g = gauge_ov.astype(np.float64)
     all_usable = usable.all(axis=0)
     g_used = np.where(usable, g, 0.0)
+    energy = (g * g).sum(axis=0)
+    used_energy = (g_used * g_used).sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):  # a black gauge band: NaN
-        eq6 = np.sqrt((s * s).sum(axis=0)) / np.sqrt((g * g).sum(axis=0))
-        lsq = (s * g_used).sum(axis=0) / (g_used * g_used).sum(axis=0)
-        ratio = np.where(all_usable, eq6, lsq)
+        eq6 = np.sqrt((s * s).sum(axis=0)) / np.sqrt(energy)
+        lsq = (s * g_used).sum(axis=0) / used_energy
+    # Usable measurements that carry almost none of the light (e.g. every lit one
+    # clipped) cannot fix the scale: NaN, not a guess.
+    lsq = np.where(used_energy >= 0.01 * energy, lsq, np.nan)
+    ratio = np.where(all_usable, eq6, lsq)
     return (ratio * gauge_albedo).astype(np.float32)
