@@ -113,7 +113,7 @@ def _validate(normals, mask, weights):
 
 def integrate(normals, mask=None, *, weights=None,
               method: Literal["poisson", "dct"] = "poisson", min_nz: float = 0.05,
-              tol: float = 1e-8) -> np.ndarray:
+              tol: float = 1e-6) -> np.ndarray:
     """Integrate a normal map into a height map (pixel units, orthographic).
 
     Parameters
