@@ -27,7 +27,7 @@ _REL_SLACK = 1e-4
 _ABS_SLACK = 1e-9
 # Bucket truncation (eq. 12) costs one full distance; it pays only when the bucket
 # holds more entries than that.
-_MIN_ENTRIES_FOR_BALL_TEST = 3
+_MIN_ENTRIES_FOR_BALL_TEST = 2
 # Reassociation lets LLVM vectorise the dot products; its rounding changes are
 # orders of magnitude below the pruning margins above. No flags that assume
 # finite values: inputs are checked, but inf is used as "no entry yet".
