@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
-from .errors import ColorPSError, InputError, OutputError
+from .errors import ColorPSError, InputError
+from .pipeline import integrate_file, reconstruct_files
 
 class _FORMATTER(argparse.HelpFormatter):
     """Show a default where it means something and the help does not say it."""
@@ -68,6 +68,20 @@ def _level(text: str):
     return value
 
 
+def _none_or(value, default):
+    """A level option: None (not given) becomes ``default``, "none" becomes None."""
+    if value is None:
+        return default
+    return None if value == "none" else value
+
+
+def _positive_float(text: str):
+    value = _level(text)
+    if value == "none":
+        raise argparse.ArgumentTypeError("expected a linear value > 0")
+    return value
+
+
 def _positive_int(text: str):
     try:
         n = int(text)
@@ -112,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="linear value at or above which a measurement is clipped "
                           "(default: from the bit depth: top code of integer files, "
                           "none for float files)")
-    rec.add_argument("--dark-level", type=_level, default=None, metavar="V",
+    rec.add_argument("--dark-level", type=_positive_float, default=None, metavar="V",
                      help="linear noise floor of one measurement; bands whose OV norm is "
                           "below V sqrt(m) are too dark (default: 2 codes of integer "
                           "files, 3.3e-5 for float files)")
@@ -163,125 +177,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _read_mask(path: str, shape) -> np.ndarray:
-    from .io import read_image
-
-    image, _ = read_image(path, "linear")
-    if image.shape[:2] != tuple(shape):
-        raise InputError(f"{path}: mask is {image.shape[1]}x{image.shape[0]} but scene images "
-                         f"are {shape[1]}x{shape[0]}")
-    return image[..., 0] > 0.5
-
-
-def run_reconstruct(scene_patterns, gauge_patterns, sphere, out, *, gauge_albedo=1.0,
-                    mode="colour", band=None, mask=None, threads=None, grid_n=None,
-                    encoding="auto", overwrite=False, progress=True, height=True,
-                    mesh=None, clip_level=None, dark_level=None, max_distance=0.1):
-    """Read, reconstruct and write: the work behind ``colorps reconstruct``."""
-    from .gauge import Gauge, find_sphere
-    from .io import expand_paths, input_levels, read_stack
-    from .outputs import prepare_output_dir, save_reconstruction
-    from .reconstruct import reconstruct
-
-    prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
-    scene_paths = expand_paths(scene_patterns, name="--scene")
-    gauge_paths = expand_paths(gauge_patterns, name="--gauge")
-    if len(scene_paths) != len(gauge_paths):
-        raise InputError(f"--scene gives {len(scene_paths)} images but --gauge gives "
-                         f"{len(gauge_paths)}; they are paired in order")
-    scene, names = read_stack(scene_paths, encoding, name="scene", progress=progress)
-    gauge_stack, gauge_names = read_stack(gauge_paths, encoding, name="gauge",
-                                          progress=progress)
-    if gauge_stack.shape[3] != scene.shape[3]:
-        raise InputError(f"{gauge_paths[0]}: has {gauge_stack.shape[3]} channel(s) but "
-                         f"{scene_paths[0]} has {scene.shape[3]}")
-    if band is not None and band != "luminance":
-        try:
-            band = int(band)
-        except ValueError:
-            raise InputError(f"--band: expected 'luminance' or a channel index, got {band!r}") from None
-    auto_clip, auto_dark = input_levels(scene_paths[0], encoding)
-    clip_level = auto_clip if clip_level is None else None if clip_level == "none" else clip_level
-    dark_level = auto_dark if dark_level in (None, "none") else dark_level
-    max_distance = None if max_distance == "none" else max_distance
-    found = find_sphere(gauge_stack) if sphere == "auto" else sphere
-    gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
-    scene_mask = None if mask is None else _read_mask(mask, scene.shape[1:3])
-    result = reconstruct(scene, gauge_stack, gauge, mode=mode, band=band, mask=scene_mask,
-                         grid_n=grid_n, threads=threads, progress=progress,
-                         clip_level=clip_level, min_norm=dark_level * np.sqrt(scene.shape[0]),
-                         max_distance=max_distance)
-    report = dict(
-        colorps_version=__version__, scene=[str(p) for p in scene_paths],
-        gauge=[str(p) for p in gauge_paths], sphere=dict(zip(("cx", "cy", "r"), found)),
-        sphere_found_automatically=sphere == "auto", gauge_albedo=gauge_albedo, mode=mode,
-        band=band, mask=mask, encoding=encoding, channels=names, clip_level=clip_level,
-        dark_level=dark_level, max_distance=max_distance,
-    )
-    extra = {}
-    if height:
-        from .figures import overview, shaded_relief
-        from .integrate import integrate, weights_from_quality
-        from .io import write_image
-
-        t0 = time.perf_counter()
-        z = integrate(result.normals, result.solved,
-                      weights=weights_from_quality(result.quality))
-        result.stats["seconds"]["integration"] = time.perf_counter() - t0
-        result.height = z
-        figure = overview(scene.mean(axis=0), result.normals, result.albedo, z,
-                          title=f"colorps {mode} mode: {result.stats['solved']} pixels solved")
-        extra["height.exr"] = lambda p: write_image(p, z, channel_names=["Z"])
-        extra["relief.png"] = lambda p: write_image(p, shaded_relief(z), dtype="uint8")
-        extra["overview.png"] = lambda p: write_image(p, figure, dtype="uint8")
-        for kind in ("ply", "obj") if mesh == "both" else (mesh,) if mesh else ():
-            extra[f"mesh.{kind}"] = _mesh_writer(z, result.albedo)
-    elif mesh:
-        raise InputError("--mesh needs the height map; drop --no-height")
-    save_reconstruction(result, out, channel_names=names, report=report, overwrite=overwrite,
-                        extra_files=extra)
-    return result
-
-
-def _mesh_writer(height, colours):
-    from .mesh import height_mesh, write_mesh
-
-    return lambda path: write_mesh(height_mesh(height, colours), path)
-
-
-def run_integrate(normals_path, out, *, mask=None, weights=None, method="poisson",
-                  mesh=None, overwrite=False):
-    """Integrate a normal map file into a height map file (``colorps integrate``)."""
-    from .integrate import integrate, weights_from_quality
-    from .io import read_image, write_image
-
-    targets = [Path(out)] + ([Path(mesh)] if mesh else [])
-    for target in targets:
-        if target.exists() and not overwrite:
-            raise OutputError(f"{target}: already exists; use --overwrite to replace it")
-        if not target.parent.is_dir():
-            raise OutputError(f"{target.parent}: output folder does not exist")
-    if Path(out).suffix.lower() != ".exr":
-        raise InputError(f"--out {out}: the height map is written as OpenEXR (.exr)")
-    normals, _ = read_image(normals_path, "linear")
-    if normals.shape[2] < 3:
-        raise InputError(f"{normals_path}: a normal map needs 3 channels (X, Y, Z), "
-                         f"got {normals.shape[2]}")
-    normals = normals[..., :3]
-    scene_mask = None if mask is None else _read_mask(mask, normals.shape[:2])
-    w = None
-    if weights is not None:
-        quality, _ = read_image(weights, "linear")
-        if quality.shape[:2] != normals.shape[:2]:
-            raise InputError(f"{weights}: size differs from {normals_path}")
-        w = weights_from_quality(quality[..., 0])
-    z = integrate(normals, scene_mask, weights=w, method=method)
-    if mesh:
-        _mesh_writer(z, None)(mesh)
-    write_image(out, z, channel_names=["Z"])
-    return z
-
-
 def _angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     cos = np.clip((a * b).sum(axis=-1), -1.0, 1.0)
     return np.degrees(np.arccos(cos))
@@ -298,10 +193,11 @@ def run_demo(out, data=None, mode="colour", overwrite=False):
                          "--data DIR (make one with 'colorps synth --out DIR')")
     info = json.loads(info_path.read_text())
     g = info["gauge_sphere"]
-    result = run_reconstruct([str(folder / "scene_*.exr")], [str(folder / "gauge_*.exr")],
-                             (g["cx"], g["cy"], g["r"]), out, gauge_albedo=info["gauge_albedo"],
-                             mode=mode, overwrite=overwrite,
-                             mask=str(folder / "mask.png") if (folder / "mask.png").exists() else None)
+    mask = folder / "mask.png"
+    result = reconstruct_files([str(folder / "scene_*.exr")], [str(folder / "gauge_*.exr")],
+                               (g["cx"], g["cy"], g["r"]), out,
+                               gauge_albedo=info["gauge_albedo"], mode=mode, overwrite=overwrite,
+                               mask_path=mask if mask.exists() else None)
     truth_n, _ = read_image(folder / "truth_normal.exr")
     truth_a, _ = read_image(folder / "truth_albedo.exr")
     truth_mask = read_image(folder / "truth_mask.png", "linear")[0][..., 0] > 0.5
@@ -329,21 +225,23 @@ def main(argv=None) -> int:
     warnings.formatwarning = _warning_line
     try:
         if args.command == "reconstruct":
-            result = run_reconstruct(
+            result = reconstruct_files(
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
-                mode=args.mode, band=args.band, mask=args.mask, threads=args.threads,
+                mode=args.mode, band=args.band, mask_path=args.mask, threads=args.threads,
                 grid_n=args.grid_n, encoding=args.encoding, overwrite=args.overwrite,
                 progress=not args.quiet, height=not args.no_height, mesh=args.mesh,
-                clip_level=args.clip_level, dark_level=args.dark_level,
-                max_distance=args.max_distance)
+                clip_level=_none_or(args.clip_level, "auto"),
+                dark_level="auto" if args.dark_level is None else args.dark_level,
+                max_distance=_none_or(args.max_distance, None))
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s['solved']} of {s['pixels']} pixels "
                       f"(table {s['table_size']}, grid N={s['grid_n']}, "
                       f"{s['seconds']['total']:.2f} s); results in {args.out}/")
         elif args.command == "integrate":
-            z = run_integrate(args.normals, args.out, mask=args.mask, weights=args.weights,
-                              method=args.method, mesh=args.mesh, overwrite=args.overwrite)
+            z = integrate_file(args.normals, args.out, mask_path=args.mask,
+                               weights_path=args.weights, method=args.method, mesh=args.mesh,
+                               overwrite=args.overwrite)
             inside = np.isfinite(z)
             print(f"integrated {inside.sum()} pixels; relief depth "
                   f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")

@@ -8,7 +8,7 @@ from colorps import InputError, integrate, synth, weights_from_quality
 from colorps.cli import main
 from colorps.figures import shaded_relief
 from colorps.integrate import slopes
-from colorps.io import read_image, write_image
+from colorps.io import read_image
 from colorps.mesh import height_mesh, write_mesh
 
 
