@@ -209,6 +209,15 @@ def run_demo(out, data=None, mode="colour", overwrite=False):
           f"95th percentile {np.percentile(err, 95):.3f}")
     print("  albedo relative error, median per band: "
           + ", ".join(f"{np.median(rel[:, k]):.2%}" for k in range(rel.shape[1])))
+    truth_height = folder / "truth_height.exr"
+    if result.height is not None and truth_height.exists():
+        z_true = read_image(truth_height)[0][..., 0]
+        both = ok & np.isfinite(result.height)
+        err = (result.height[both] - result.height[both].mean()) - \
+            (z_true[both] - z_true[both].mean())
+        depth = np.ptp(z_true[both])
+        print(f"  height RMS error {np.sqrt(np.mean(err ** 2)):.2f} px "
+              f"({np.sqrt(np.mean(err ** 2)) / depth:.2%} of the {depth:.1f} px relief)")
     print(f"  outputs in {out}/ (normal.png, albedo.png, quality.exr, report.json, ...)")
     return result
 

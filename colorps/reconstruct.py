@@ -24,7 +24,7 @@ from .errors import InputError
 
 
 class GaugeWarning(UserWarning):
-    """The gauge images lose many pixels (clipping, darkness, bad values)."""
+    """The capture may not fix the normals (gauge losing pixels, too few images)."""
 
 from .gauge import Gauge, parse_albedo
 from .grid import BucketGrid
@@ -169,8 +169,15 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
         hint = ("" if mode == "colour" else
                 "; colour mode can work with 2 images lit by mixed-colour lights")
         raise InputError(f"{mode} mode needs at least {MIN_IMAGES[mode]} images, got {m}{hint}")
-    if mode == "colour" and m < 3 and c < 2:
-        raise InputError("colour mode with 2 images needs several bands (mixed-colour lights)")
+    if mode == "colour" and m < 3:
+        if c < 2:
+            raise InputError("colour mode with 2 images needs several bands (mixed-colour "
+                             "lights)")
+        import warnings
+
+        warnings.warn("colour mode with 2 images solves normals only when each image is lit "
+                      "by several lights of different colours at once", GaugeWarning,
+                      stacklevel=2)
     if max_distance is not None and not max_distance > 0:
         raise InputError(f"max_distance: expected a value > 0 or None, got {max_distance!r}")
     if mask is None:

@@ -325,7 +325,8 @@ def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float =
 
     Writes ``scene_NN.exr`` and ``gauge_NN.exr`` (half float, linear RGB),
     ``mask.png`` (the object mask a user would draw, for ``--mask``),
-    ``truth_normal.exr``, ``truth_albedo.exr``, ``truth_mask.png`` and
+    ``truth_normal.exr``, ``truth_albedo.exr``, ``truth_height.exr`` (pixels,
+    NaN outside), ``truth_mask.png`` and
     ``sample.json`` (every parameter, the light directions and colours, and the
     gauge sphere geometry) into ``out_dir``.
 
@@ -366,6 +367,7 @@ def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float =
     write_image(out / "truth_albedo.exr", np.where(scene.mask[..., None], scene.albedo, np.nan),
                 channel_names=["R", "G", "B"])
     write_image(out / "truth_mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    write_image(out / "truth_height.exr", scene.height, channel_names=["Z"])
     write_image(out / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
     centre = (gsize - 1) / 2.0
     info = dict(

@@ -136,10 +136,11 @@ def test_synth_and_demo(tmp_path, capsys):
     data = tmp_path / "data"
     assert main(["synth", "--out", str(data), "--size", "48", "--images", "4",
                  "--gauge-radius", "40", "--lights", "mixed"]) == 0
+    assert (data / "truth_height.exr").exists()
     assert (data / "sample.json").exists() and len(list(data.glob("scene_*.exr"))) == 4
     assert main(["demo", "--data", str(data), "--out", str(tmp_path / "demo")]) == 0
     printed = capsys.readouterr().out
-    assert "normal error (deg): mean" in printed
+    assert "normal error (deg): mean" in printed and "height RMS error" in printed
     assert main(["demo", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "d")]) == 1
 
 

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from colorps import BucketGrid, Gauge, InputError, compute_signatures, reconstruct, synth
+from colorps.reconstruct import GaugeWarning
 
 GAUGE_R = 150.0
 
@@ -74,7 +75,8 @@ def test_noise_colour_mode_no_worse_than_mono():
 def test_two_images_with_mixed_colour_lights():
     """Two images, each lit by two lights of different colours at once."""
     lighting = synth.mixed_lights(2, 40)
-    scene, result = run(lighting, mode="colour")
+    with pytest.warns(GaugeWarning, match="several lights of different colours"):
+        scene, result = run(lighting, mode="colour")
     ok = lit_by_all(scene, lighting) & result.solved
     colour_err = angular_error(result.normals[ok], scene.normals[ok])
     assert colour_err.mean() < 1.0, colour_err.mean()
