@@ -49,6 +49,15 @@ def _dist2(query, table, row):
     return acc
 
 
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _test_entry(query, entries, e, best, dmin2, n_tests):
+    """Compute one full distance; keep the entry if it is the closest so far."""
+    d2 = np.float64(_dist2(query, entries, e))
+    if d2 < dmin2:
+        return e, d2, n_tests + 1
+    return best, dmin2, n_tests + 1
+
+
 @njit(cache=True, inline="always")
 def _interval_gap(x, lo, hi):
     if x < lo:
@@ -81,11 +90,7 @@ def _scan_bucket(query, pu, pv, h, bucket, entries, entry_aux, bucket_start,
         dh = h - entry_aux[e, 2]
         if _prunable(du * du + dv * dv + dh * dh, dmin2):
             continue
-        n_tests += 1
-        d2 = np.float64(_dist2(query, entries, e))
-        if d2 < dmin2:
-            dmin2 = d2
-            best = e
+        best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
     return best, dmin2, n_buckets, n_tests
 
 
@@ -178,11 +183,7 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
                     lb += g * g
                 if _prunable(lb, dmin2):
                     continue
-            n_tests += 1
-            d2 = np.float64(_dist2(query, entries, e))
-            if d2 < dmin2:
-                dmin2 = d2
-                best = e
+            best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
     return best, dmin2, n_buckets, n_tests
 
 

@@ -44,18 +44,6 @@ def _albedo(text: str):
     return values[0] if len(values) == 1 else values
 
 
-def _grid_n(text: str):
-    if text == "auto":
-        return "auto"
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {text!r}")
-    return n
-
-
 def _level(text: str):
     if text == "none":
         return "none"
@@ -90,6 +78,10 @@ def _positive_int(text: str):
     if n < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return n
+
+
+def _grid_n(text: str):
+    return "auto" if text == "auto" else _positive_int(text)
 
 
 def build_parser() -> argparse.ArgumentParser:
