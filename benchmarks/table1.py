@@ -110,12 +110,19 @@ def _best_time(fn, repeats: int) -> float:
     return best
 
 
-def _sized_run(queries: np.ndarray, fn, seconds: float) -> tuple[int, float]:
-    """Time ``fn`` on a contiguous run of queries sized to about ``seconds``."""
+def _sized_run(queries: np.ndarray, fn, seconds: float,
+               minimum: int = 20000) -> tuple[int, float]:
+    """Time ``fn`` on a contiguous run of queries sized to about ``seconds``.
+
+    At least ``minimum`` queries, so that per-call overheads (thread pools
+    starting) are amortised as they are over a real image.
+    """
     mid = queries.shape[0] // 2
-    probe = queries[mid:mid + 500]
+    probe = queries[mid:mid + 2000]
+    fn(probe)
     t_probe = _best_time(lambda: fn(probe), 1)
-    count = int(min(queries.shape[0], max(500, seconds / max(t_probe / 500, 1e-9))))
+    per_query = max(t_probe / len(probe), 1e-9)
+    count = int(min(queries.shape[0], max(minimum, seconds / per_query)))
     start = max(0, min(mid - count // 2, queries.shape[0] - count))
     part = queries[start:start + count]
     return count, _best_time(lambda: fn(part), 2 if count < queries.shape[0] else 3)
@@ -134,7 +141,8 @@ def worker(method: str, data: str, grid_n: int, threads: int, seconds: float,
         build = time.perf_counter() - t0
         grid.query(queries[:64], threads=threads)  # compile/load cache
         if grid_n == 1:  # linear scan: a sample is enough
-            count, t = _sized_run(queries, lambda q: grid.query(q, threads=threads), seconds)
+            count, t = _sized_run(queries, lambda q: grid.query(q, threads=threads), seconds,
+                                  minimum=2000)
         else:
             count = queries.shape[0]
             t = _best_time(lambda: grid.query(queries, threads=threads), 3 if threads > 1 else 2)

@@ -254,8 +254,10 @@ def test_interrupted_run_leaves_no_partial_output(tmp_path):
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
         results.append(proc.returncode)
-        if proc.returncode == 130:
-            assert "interrupted" in err
+        # 130: caught by colorps; -SIGINT: arrived while Python was still importing.
+        if proc.returncode in (130, -signal.SIGINT):
+            if proc.returncode == 130:
+                assert "interrupted" in err
             leftovers = list(out.iterdir()) if out.exists() else []
             assert leftovers == [], leftovers
         else:  # finished before the signal: then everything is there
@@ -263,4 +265,4 @@ def test_interrupted_run_leaves_no_partial_output(tmp_path):
             assert (out / "report.json").exists()
             for p in out.iterdir():
                 p.unlink()
-    assert 130 in results, "the run was never interrupted; make it longer"
+    assert 130 in results, f"colorps never caught the interrupt ({results}); make it longer"
