@@ -163,7 +163,10 @@ def find_sphere(stack) -> tuple[float, float, float]:
                                     residual_threshold=1.0, max_trials=200, rng=0)
     if model is None or inliers is None:
         raise GaugeError("sphere auto: no circle fits the gauge's outline")
-    (cx, cy), r = (float(v) for v in model.center), float(model.radius)
+    if hasattr(model, "center"):  # scikit-image >= 0.26
+        (cx, cy), r = (float(v) for v in model.center), float(model.radius)
+    else:
+        cx, cy, r = (float(v) for v in model.params)
     area_ratio = region.sum() / (np.pi * r * r)
     if inliers.mean() < 0.8 or not 0.85 < area_ratio < 1.15:
         raise GaugeError(
