@@ -1,5 +1,6 @@
 """Messy inputs: saturated colours, clipping, bad values, corrupt files, Ctrl-C."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -149,6 +150,14 @@ def test_output_under_a_file(sample, tmp_path, capsys):
     (tmp_path / "afile").write_text("x")
     assert main(cli_args(sample, tmp_path / "afile" / "out")) == 1
     assert "cannot create output folder" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_output_folder_that_cannot_be_created(sample, capsys):
+    """Not writable even for root: /proc refuses new folders."""
+    assert main(cli_args(sample, "/proc/colorps-test-out")) == 1
+    err = capsys.readouterr().err
+    assert "/proc/colorps-test-out: cannot create output folder" in err
 
 
 def test_jpeg_inputs_warn_and_continue(sample, tmp_path, capsys):
