@@ -52,8 +52,13 @@ OPTIONAL_FILES = ("height.exr", "relief.png", "overview.png", "mesh.ply", "mesh.
 
 
 def prepare_output_dir(out_dir, *, overwrite: bool = False,
-                       files: Sequence[str] = OUTPUT_FILES + OPTIONAL_FILES) -> Path:
-    """Check (and create) an output folder before any work is done.
+                       files: Sequence[str] = OUTPUT_FILES + OPTIONAL_FILES,
+                       create: bool = False) -> Path:
+    """Check an output folder before any work is done (and create it if asked).
+
+    Without ``create`` nothing is made: a missing folder only needs its nearest
+    existing parent to be a writable folder, so a run that fails later leaves
+    no trace.
 
     Raises
     ------
@@ -64,16 +69,25 @@ def prepare_output_dir(out_dir, *, overwrite: bool = False,
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: output path exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise OutputError(f"{out}: output folder is not writable")
-    existing = [name for name in files if (out / name).exists()]
-    if existing and not overwrite:
-        raise OutputError(f"{out}: already holds results ({', '.join(existing)}); "
-                          "use --overwrite to replace them")
+    if out.is_dir():
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise OutputError(f"{out}: output folder is not writable")
+        existing = [name for name in files if (out / name).exists()]
+        if existing and not overwrite:
+            raise OutputError(f"{out}: already holds results ({', '.join(existing)}); "
+                              "use --overwrite to replace them")
+    else:
+        parent = out.absolute().parent
+        while not parent.exists():
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise OutputError(f"{out}: cannot create output folder ({parent} is not a "
+                              "writable folder)")
+    if create:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
     return out
 
 
@@ -109,7 +123,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     list of Path
         The files written.
     """
-    out = prepare_output_dir(out_dir, overwrite=overwrite)
+    out = prepare_output_dir(out_dir, overwrite=overwrite, create=True)
     c = result.albedo.shape[-1]
     if channel_names is None:
         channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])

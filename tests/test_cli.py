@@ -83,7 +83,7 @@ def test_bad_input_exits_nonzero_with_one_line(sample, tmp_path, capsys, mutate,
     assert main(args) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("colorps: error:") and message in err and "\n" not in err
-    assert not any(out.glob("*")) if out.exists() else True
+    assert not out.exists()  # nothing created, not even the folder
 
 
 @pytest.mark.parametrize("option, value", [
@@ -161,3 +161,20 @@ def test_console_script_version_and_help():
 def test_bundled_demo_runs(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "demo")]) == 0
     assert "pixels solved" in capsys.readouterr().out
+
+
+def test_channel_mismatch_across_stacks_and_small_radius(sample, tmp_path, capsys):
+    folder, _ = sample
+    grey = tmp_path / "grey"
+    grey.mkdir()
+    for path in sorted(folder.glob("gauge_*.exr")):
+        write_image(grey / path.name, read_image(path)[0][..., :1])
+    args = args_for(sample, tmp_path / "o")
+    args[args.index("--gauge") + 1] = str(grey / "gauge_*.exr")
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "gauge_00.exr: has 1 channel(s) but" in err and "scene_00.exr has 3" in err
+    args = args_for(sample, tmp_path / "o", sphere="50,50,4")
+    assert main(args) == 1
+    assert "too small" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
