@@ -10,7 +10,13 @@ import numpy as np
 
 from .io import srgb_encode
 
-__all__ = ["shaded_relief", "overview"]
+__all__ = ["shaded_relief", "overview", "as_rgb"]
+
+
+def as_rgb(values) -> np.ndarray:
+    """Three display bands: the first three bands, or one band repeated as grey."""
+    v = np.asarray(values, dtype=np.float64)
+    return v[..., :3] if v.shape[-1] >= 3 else np.repeat(v[..., :1], 3, axis=-1)
 
 
 def shaded_relief(height, *, azimuth_deg: float = 135.0, elevation_deg: float = 45.0,
@@ -72,16 +78,11 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    def rgb(values):
-        v = np.asarray(values, dtype=np.float64)
-        v = v[..., :3] if v.shape[-1] >= 3 else np.repeat(v[..., :1], 3, axis=-1)
-        return v
-
-    photo = rgb(scene_image)
+    photo = as_rgb(scene_image)
     peak = np.nanpercentile(photo, 99.5) if np.isfinite(photo).any() else 1.0
     panels = [("scene (mean image)", srgb_encode(photo / (peak if peak > 0 else 1.0))),
               ("normals (n + 1) / 2", np.nan_to_num((np.asarray(normals) + 1) / 2, nan=0.0)),
-              ("albedo", srgb_encode(rgb(albedo)))]
+              ("albedo", srgb_encode(as_rgb(albedo)))]
     if height is not None:
         panels.append(("shaded relief", shaded_relief(height)))
     fig = Figure(figsize=(3.2 * len(panels), 3.6), dpi=100)

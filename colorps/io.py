@@ -17,9 +17,11 @@ colour-science's sRGB transfer functions. Alpha channels are dropped.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Literal, Sequence
 
@@ -42,16 +44,36 @@ class LossyInputWarning(UserWarning):
     """An input uses lossy compression (JPEG): results will be noisier."""
 
 
-def _header(path: Path):
+def _open_input(path: Path):
+    """An open OpenImageIO ImageInput, or an ImageReadError naming the file."""
     import OpenImageIO as oiio
 
+    if path.is_dir():
+        raise ImageReadError(f"{path}: is a directory, not an image")
+    if not path.exists():
+        raise ImageReadError(f"{path}: no such file")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise ImageReadError(f"{path}: cannot read image ({oiio.geterror().strip()})")
+    return inp
+
+
+@contextlib.contextmanager
+def atomic_target(path):
+    """Yield a temporary path beside ``path``; move it onto ``path`` on success.
+
+    On any error (or Ctrl-C) the temporary file is removed and ``path`` is left
+    as it was.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
     try:
-        return inp.format_name(), str(inp.spec().format)
-    finally:
-        inp.close()
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float]:
@@ -67,7 +89,11 @@ def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float
     clip_level : float or None
     dark_level : float
     """
-    _, pixel_type = _header(Path(path))
+    inp = _open_input(Path(path))
+    try:
+        pixel_type = str(inp.spec().format)
+    finally:
+        inp.close()
     if pixel_type not in _INTEGER_TYPES:
         return None, FLOAT_DARK_LEVEL
     top = _MAX_CODE[pixel_type]
@@ -114,18 +140,10 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
     ImageReadError
         Missing, unreadable, truncated or corrupt file, or a directory.
     """
-    import OpenImageIO as oiio
-
     if encoding not in ("auto", "linear", "srgb"):
         raise InputError(f"encoding: expected 'auto', 'linear' or 'srgb', got {encoding!r}")
     path = Path(path)
-    if path.is_dir():
-        raise ImageReadError(f"{path}: is a directory, not an image")
-    if not path.exists():
-        raise ImageReadError(f"{path}: no such file")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ImageReadError(f"{path}: cannot read image ({oiio.geterror().strip()})")
+    inp = _open_input(path)
     try:
         spec = inp.spec()
         file_format = inp.format_name()
@@ -136,8 +154,6 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
     if pixels is None or problem:
         raise ImageReadError(f"{path}: corrupt or truncated image ({problem or 'no data'})")
     if file_format == "jpeg":
-        import warnings
-
         warnings.warn(f"{path}: JPEG is lossy 8-bit; expect noisier normals than from "
                       "raw, 16-bit TIFF or EXR", LossyInputWarning, stacklevel=2)
     pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
@@ -209,22 +225,16 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
         spec.channelnames = tuple(channel_names)
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        out = oiio.ImageOutput.create(tmp)
+    with atomic_target(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise OutputError(f"{path}: cannot write ({oiio.geterror().strip()})")
-        if not out.open(tmp, spec):
+        if not out.open(str(tmp), spec):
             raise OutputError(f"{path}: cannot write ({out.geterror().strip()})")
         ok = out.write_image(np.ascontiguousarray(data))
         out.close()
         if not ok:
             raise OutputError(f"{path}: cannot write ({out.geterror().strip()})")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

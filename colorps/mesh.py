@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError, OutputError
-from .io import srgb_encode
+from .figures import as_rgb
+from .io import atomic_target, srgb_encode
 
 __all__ = ["height_mesh", "write_mesh", "MESH_FORMATS"]
 
@@ -62,8 +61,7 @@ def height_mesh(height, colours=None):
     faces = np.concatenate(faces)
     vertex_colors = None
     if colours is not None:
-        col = np.asarray(colours, dtype=np.float64)[inside]
-        col = col[:, :3] if col.shape[1] >= 3 else np.repeat(col[:, :1], 3, axis=1)
+        col = as_rgb(np.asarray(colours, dtype=np.float64)[inside])
         vertex_colors = np.round(srgb_encode(col) * 255).astype(np.uint8)
     return trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=vertex_colors,
                            process=False)
@@ -77,12 +75,9 @@ def write_mesh(mesh, path) -> Path:
         raise InputError(f"{path}: mesh format must be one of {MESH_FORMATS}")
     data = mesh.export(file_type=kind, **({"encoding": "binary"} if kind == "ply" else
                                          {"include_color": True}))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data if isinstance(data, bytes) else data.encode())
-        os.replace(tmp, path)
+        with atomic_target(path) as tmp:
+            tmp.write_bytes(data if isinstance(data, bytes) else data.encode())
     except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
         raise OutputError(f"{path}: cannot write mesh ({exc.strerror})") from None
     return path

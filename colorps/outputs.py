@@ -37,6 +37,7 @@ from typing import Sequence
 import numpy as np
 
 from .errors import OutputError
+from .figures import as_rgb
 from .io import srgb_encode, write_image
 from .reconstruct import REASONS, Reconstruction
 
@@ -91,13 +92,6 @@ def prepare_output_dir(out_dir, *, overwrite: bool = False,
     return out
 
 
-def _preview(values: np.ndarray) -> np.ndarray:
-    """Albedo preview: sRGB-encoded RGB (or grey) in 0..1, black where NaN."""
-    c = values.shape[-1]
-    rgb = values[..., :3] if c >= 3 else np.repeat(values[..., :1], 3, axis=-1)
-    return srgb_encode(rgb)
-
-
 def save_reconstruction(result: Reconstruction, out_dir, *,
                         channel_names: Sequence[str] | None = None,
                         report: dict | None = None, overwrite: bool = False,
@@ -128,7 +122,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     if channel_names is None:
         channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
     normal_png = np.where(result.solved[..., None], (result.normals + 1) / 2, 0.0)
-    albedo_png = _preview(np.where(result.solved[..., None], result.albedo, 0.0))
+    albedo_png = srgb_encode(as_rgb(np.where(result.solved[..., None], result.albedo, 0.0)))
     doc = dict(report or {})
     doc["statistics"] = result.stats
     doc["reasons"] = {str(k): v for k, v in REASONS.items()}
