@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
 from .errors import ColorPSError, InputError
-from .pipeline import integrate_file, reconstruct_files
+from .pipeline import integrate_file, read_mask, reconstruct_files
+
 
 class _FORMATTER(argparse.HelpFormatter):
     """Show a default where it means something and the help does not say it."""
@@ -192,7 +194,7 @@ def run_demo(out, data=None, mode="colour", overwrite=False):
                                mask_path=mask if mask.exists() else None)
     truth_n, _ = read_image(folder / "truth_normal.exr")
     truth_a, _ = read_image(folder / "truth_albedo.exr")
-    truth_mask = read_image(folder / "truth_mask.png", "linear")[0][..., 0] > 0.5
+    truth_mask = read_mask(folder / "truth_mask.png", truth_n.shape[:2])
     ok = truth_mask & result.solved
     err = _angular_error_deg(result.normals[ok], truth_n[ok])
     rel = np.abs(result.albedo[ok] / truth_a[ok] - 1)
@@ -219,8 +221,6 @@ def _warning_line(message, category, filename, lineno, line=None):
 
 
 def main(argv=None) -> int:
-    import warnings
-
     parser = build_parser()
     args = parser.parse_args(argv)
     warnings.formatwarning = _warning_line

@@ -14,6 +14,7 @@ always given for every band of the input, from that band's OV norms.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -21,14 +22,9 @@ import numpy as np
 
 from ._checks import check_stack
 from .errors import InputError
-
-
-class GaugeWarning(UserWarning):
-    """The capture may not fix the normals (gauge losing pixels, too few images)."""
-
 from .gauge import Gauge, parse_albedo
 from .grid import BucketGrid
-from .signatures import DEFAULT_MIN_NORM, compute_signatures
+from .signatures import DEFAULT_MIN_NORM, compute_signatures, measurement_flags
 
 __all__ = ["Reconstruction", "reconstruct", "REASONS", "MIN_IMAGES", "DEFAULT_MAX_DISTANCE",
            "GaugeWarning"]
@@ -41,6 +37,10 @@ MIN_IMAGES = {"mono": 3, "colour": 2}
 #: Default largest match distance (per band, see ``quality``) of a solved pixel.
 DEFAULT_MAX_DISTANCE = 0.1
 _CHUNK = 1 << 18
+
+
+class GaugeWarning(UserWarning):
+    """The capture may not fix the normals (gauge losing pixels, too few images)."""
 
 
 @dataclass
@@ -173,8 +173,6 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
         if c < 2:
             raise InputError("colour mode with 2 images needs several bands (mixed-colour "
                              "lights)")
-        import warnings
-
         warnings.warn("colour mode with 2 images solves normals only when each image is lit "
                       "by several lights of different colours at once", GaugeWarning,
                       stacklevel=2)
@@ -196,8 +194,6 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
     n_bands = scene_sig.bands
     usable_gauge = (gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum()
     if usable_gauge < 0.8:
-        import warnings
-
         warnings.warn(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
                       "(clipped, too dark or invalid): check the gauge's exposure",
                       GaugeWarning, stacklevel=2)
@@ -310,9 +306,8 @@ def _albedo(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_albedo: np.ndarray
     Parameters are (m, P, c) observation vectors of the scene pixels and of
     their matched gauge pixels, and the (c,) gauge albedo.
     """
-    usable = np.isfinite(scene_ov) & (scene_ov >= 0)
-    if clip_level is not None:
-        usable &= scene_ov < clip_level
+    bad, clipped = measurement_flags(scene_ov, clip_level)
+    usable = ~bad & ~clipped
     s = np.where(usable, scene_ov, 0.0).astype(np.float64)
     g = gauge_ov.astype(np.float64)
     all_usable = usable.all(axis=0)

@@ -27,7 +27,8 @@ import numpy as np
 from ._checks import check_stack
 from .errors import InputError
 
-__all__ = ["SignatureSet", "compute_signatures", "luminance", "DEFAULT_MIN_NORM"]
+__all__ = ["SignatureSet", "compute_signatures", "luminance", "measurement_flags",
+           "DEFAULT_MIN_NORM"]
 
 #: Default smallest OV norm (linear units, 0..1 scale) that is normalised.
 DEFAULT_MIN_NORM = 1e-4
@@ -100,6 +101,19 @@ def luminance(stack, colourspace: str = "sRGB") -> np.ndarray:
     return rgb @ weights
 
 
+def measurement_flags(values: np.ndarray, clip_level: float | None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Per measurement: invalid (NaN, Inf, negative) and clipped (>= clip_level).
+
+    The one definition of a usable measurement, shared by the signatures and
+    the albedo fit.
+    """
+    bad = ~(values >= 0) | ~np.isfinite(values)  # NaN compares False
+    clipped = (values >= clip_level) if clip_level is not None else \
+        np.zeros(values.shape, dtype=bool)
+    return bad, clipped
+
+
 def _mono_band(stack: np.ndarray, band: int | Literal["luminance"] | None,
                colourspace: str) -> tuple[np.ndarray, list[int]]:
     """The single band of mono mode, and the input bands it is made from."""
@@ -164,10 +178,9 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
         raise InputError(f"clip_level: expected a value > 0 or None, got {clip_level!r}")
 
     # Per input band and pixel: any invalid (NaN, Inf, negative) or clipped measurement.
-    bad = ~(data >= 0) | ~np.isfinite(data)  # NaN compares False
+    bad, clipped = measurement_flags(data, clip_level)
     bad_any = bad.any(axis=0)  # (H, W, c)
-    clipped_any = ((data >= clip_level).any(axis=0) if clip_level is not None
-                   else np.zeros(bad_any.shape, dtype=bool))
+    clipped_any = clipped.any(axis=0)
     clean = np.where(bad, 0.0, data).astype(np.float32)
     if mode == "colour":
         bands = clean
