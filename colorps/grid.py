@@ -268,7 +268,10 @@ class BucketGrid:
         previous = numba.get_num_threads()
         numba.set_num_threads(n_threads)
         try:
-            _grid_kernels.lookup(q, *self._kernel_args, rows, dist, n_buckets, n_tests)
+            # Lookup cost varies over an image (noisy or unlit regions): hand out
+            # chunks of queries to threads dynamically, not in two fixed halves.
+            with numba.parallel_chunksize(4):
+                _grid_kernels.lookup(q, *self._kernel_args, rows, dist, n_buckets, n_tests)
         finally:
             numba.set_num_threads(previous)
         rows = self._entry_index[rows]
