@@ -32,6 +32,9 @@ _MIN_ENTRIES_FOR_BALL_TEST = 2
 # orders of magnitude below the pruning margins above. No flags that assume
 # finite values: inputs are checked, but inf is used as "no entry yet".
 _FASTMATH = {"reassoc", "contract"}
+# Up to this signature dimension a full distance costs no more than any bucket
+# test, so phase 1 tests whole runs of cells without looking at their buckets.
+RUN_SCAN_DIMS = 8
 
 
 @njit(cache=True, inline="always")
@@ -56,6 +59,33 @@ def _test_entry(query, entries, e, best, dmin2, n_tests):
     if d2 < dmin2:
         return e, d2, n_tests + 1
     return best, dmin2, n_tests + 1
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block, cell_begin,
+              cell_end, entries, best, dmin2, n_buckets, n_tests):
+    """Test every entry of one run of cells (row i + r, columns j + s0 .. j + s1)."""
+    ci = i + run[0]
+    if ci < 0 or ci >= n:
+        return best, dmin2, n_buckets, n_tests
+    c0 = max(j + run[1], 0)
+    c1 = min(j + run[2], n - 1)
+    if c0 > c1:
+        return best, dmin2, n_buckets, n_tests
+    gu = _interval_gap(pu, ci * delta - half_width, (ci + 1) * delta - half_width)
+    gv = _interval_gap(pv, c0 * delta - half_width, (c1 + 1) * delta - half_width)
+    if _prunable(gu * gu + gv * gv, dmin2):
+        return best, dmin2, n_buckets, n_tests
+    while c0 <= c1:  # cells of one row are contiguous within a block
+        stop = min(c1, (c0 // block + 1) * block - 1)
+        first = cell_begin[ci * n + c0]
+        last = cell_end[ci * n + stop]
+        if first < last:
+            n_buckets += 1
+        for e in range(first, last):
+            best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
+        c0 = stop + 1
+    return best, dmin2, n_buckets, n_tests
 
 
 @njit(cache=True, inline="always")
@@ -99,7 +129,7 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
                 entry_aux, entry_far, entry_cell, cell_bucket, bucket_start, bucket_h,
                 bucket_mean, bucket_radius, scan_offsets, scan_bound2, n_fine,
                 fine_dd2_max, block, n_blocks, block_start, block_box,
-                block_offsets, block_bound2, entry_bound):
+                block_offsets, block_bound2, entry_bound, run_scan):
     """Exact nearest entry of one query: (row in ``entries``, squared distance, b, d)."""
     # Projection on the PCA plane and distance from it, in float64.
     pu = 0.0
@@ -120,6 +150,19 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
     n_tests = 0
 
     # Phase 1: the paper's scan (Procedure 1) over the nearby cells, eq. 15 order.
+    runs, run_bound2, cell_begin, cell_end = run_scan
+    if runs.shape[0] > 0:
+        # Low dimensions: the same order, with the cells of one row that share
+        # a bound merged into runs, each a contiguous range of entries.
+        for o in range(runs.shape[0]):
+            if _prunable(run_bound2[o], dmin2):  # early termination, eq. 16
+                return best, dmin2, n_buckets, n_tests
+            best, dmin2, n_buckets, n_tests = _scan_run(
+                query, pu, pv, i, j, runs[o], n, delta, half_width, block, cell_begin,
+                cell_end, entries, best, dmin2, n_buckets, n_tests)
+        if n_fine == scan_offsets.shape[0]:  # phase 1 covered the whole grid
+            return best, dmin2, n_buckets, n_tests
+        n_fine = 0  # (the runs replace the cell-by-cell scan below)
     for o in range(n_fine):
         if _prunable(scan_bound2[o], dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
@@ -195,7 +238,7 @@ def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry
            entry_far, entry_cell, cell_bucket, bucket_start, bucket_h, bucket_mean,
            bucket_radius, scan_offsets, scan_bound2, n_fine, fine_dd2_max, block,
            n_blocks, block_start, block_box, block_offsets, block_bound2, entry_bound,
-           out_row, out_dist, out_buckets, out_tests):
+           run_scan, out_row, out_dist, out_buckets, out_tests):
     """Nearest table row for every query (``prange`` over chunks of queries).
 
     Each chunk allocates its (far_axes + 1) scratch values once, outside the
@@ -211,7 +254,7 @@ def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry
                 entry_aux, entry_far, entry_cell, cell_bucket, bucket_start, bucket_h,
                 bucket_mean, bucket_radius, scan_offsets, scan_bound2, n_fine,
                 fine_dd2_max, block, n_blocks, block_start, block_box,
-                block_offsets, block_bound2, entry_bound)
+                block_offsets, block_bound2, entry_bound, run_scan)
             out_row[q] = best
             out_dist[q] = np.sqrt(dmin2)
             out_buckets[q] = nb

@@ -61,6 +61,42 @@ def _scan_order(extent: int) -> tuple[np.ndarray, np.ndarray]:
     return offsets, dd2[order]
 
 
+def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group a scan order into runs of cells of one row with the same bound.
+
+    ``offsets`` (L, 2) sorted by ``dd2`` (eq. 15). Within each group of equal
+    ``dd2`` the cells of one row r with consecutive s form one run (r, s0, s1);
+    runs keep the order of their first cell. Returns (R, 3) int64 runs and
+    their dd2.
+    """
+    runs, bounds = [], []
+    start = 0
+    while start < len(dd2):
+        stop = start + int(np.searchsorted(dd2[start:], dd2[start], side="right"))
+        group = offsets[start:stop]
+        first_seen = {}
+        for rank, (r, s) in enumerate(group.tolist()):
+            first_seen.setdefault(r, []).append((s, rank))
+        pieces = []
+        for r, cells in first_seen.items():
+            cells.sort()
+            s0, rank0 = cells[0]
+            prev = s0
+            for s, rank in cells[1:]:
+                if s == prev + 1:
+                    prev = s
+                    rank0 = min(rank0, rank)
+                    continue
+                pieces.append((rank0, r, s0, prev))
+                s0, prev, rank0 = s, s, rank
+            pieces.append((rank0, r, s0, prev))
+        pieces.sort()
+        runs.extend((r, s0, s1) for _, r, s0, s1 in pieces)
+        bounds.extend([dd2[start]] * len(pieces))
+        start = stop
+    return np.array(runs, dtype=np.int64).reshape(-1, 3), np.array(bounds, dtype=np.int64)
+
+
 class BucketGrid:
     """Exact nearest-neighbour index for a table of signatures (a 2-D manifold).
 
@@ -205,6 +241,17 @@ class BucketGrid:
         fine_dd2_max = fine_radius * fine_radius
         n_fine = int(np.searchsorted(dd2, fine_dd2_max, side="right"))
         block_offsets, block_dd2 = _scan_order(n_blocks)
+        if dims <= _grid_kernels.RUN_SCAN_DIMS:
+            runs, run_dd2 = _row_runs(offsets[:n_fine], dd2[:n_fine])
+        else:
+            runs, run_dd2 = np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
+        # Entry range of every cell, empty cells included (begin == end), so that
+        # a run of cells of one row within a block is one range of entries.
+        sorted_key = block_id[order] * (n * n) + cell_sorted
+        all_ci, all_cj = np.divmod(np.arange(n * n), n)
+        cell_key = ((all_ci // block) * n_blocks + all_cj // block) * (n * n) + all_ci * n + all_cj
+        cell_begin = np.searchsorted(sorted_key, cell_key, side="left").astype(np.int64)
+        cell_end = np.searchsorted(sorted_key, cell_key, side="right").astype(np.int64)
 
         self.n = n
         self.size = k_entries
@@ -228,6 +275,7 @@ class BucketGrid:
             # The per-entry bound of phase 2 costs n_axes + 1 float64 terms; it
             # only pays when a full distance costs clearly more.
             dims > 2 * (n_axes + 1),
+            (runs, (delta * delta) * run_dd2.astype(np.float64), cell_begin, cell_end),
         )
 
     # ------------------------------------------------------------------ query

@@ -47,12 +47,20 @@ def test_sphere_gauge_tables_exact(m, theta, colour, rng):
     assert near.tests < 0.02 * table.shape[0]
 
 
-def test_far_queries_exact(rng):
-    """Queries far off the manifold (outliers, other unit vectors, huge offsets)."""
-    table = sphere_table(30, 45, True)
-    junk = np.abs(rng.normal(size=(300, 3, 30)))
+@pytest.mark.parametrize("m, colour", [(3, False), (3, True), (30, True)],
+                         ids=["mono-runs", "colour-buckets", "colour-D90"])
+def test_far_queries_exact(m, colour, rng):
+    """Queries far off the manifold (outliers, other unit vectors, huge offsets).
+
+    Covers both phase-1 scans (runs of cells for D <= 8, bucket by bucket
+    above) and the coarse phase 2 behind them.
+    """
+    table = sphere_table(m, 45, colour)
+    bands = 3 if colour else 1
+    dims = table.shape[1]
+    junk = np.abs(rng.normal(size=(300, bands, m)))
     junk /= np.linalg.norm(junk, axis=-1, keepdims=True)
-    far = [junk.reshape(300, 90), rng.normal(0, 3, (100, 90)),
+    far = [junk.reshape(300, dims), rng.normal(0, 3, (100, dims)),
            table[:50] + 10.0, -table[:50]]
     queries = np.concatenate(far).astype(np.float32)
     rows, dist, stats = BucketGrid(table).query(queries, return_stats=True)
