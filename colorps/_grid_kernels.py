@@ -98,18 +98,16 @@ def _interval_gap(x, lo, hi):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _scan_bucket(query, pu, pv, h, bucket, entries, entry_aux, bucket_start,
-                 bucket_h, bucket_mean, bucket_radius, box_u0, box_v0, delta,
-                 best, dmin2, n_buckets, n_tests):
-    """Test one non-empty bucket; return the updated (best, dmin2, b, d)."""
+def _scan_bucket(query, pu, pv, h, bucket, start, stop, entries, entry_aux, bucket_h,
+                 bucket_mean, bucket_radius, box_u0, box_v0, delta, best, dmin2,
+                 n_buckets, n_tests):
+    """Test one non-empty bucket (entries start .. stop - 1); update (best, dmin2, b, d)."""
     gu = _interval_gap(pu, box_u0, box_u0 + delta)
     gv = _interval_gap(pv, box_v0, box_v0 + delta)
     gh = _interval_gap(h, bucket_h[bucket, 0], bucket_h[bucket, 1])
     if _prunable(gu * gu + gv * gv + gh * gh, dmin2):
         return best, dmin2, n_buckets, n_tests
     n_buckets += 1
-    start = bucket_start[bucket]
-    stop = bucket_start[bucket + 1]
     if stop - start >= _MIN_ENTRIES_FOR_BALL_TEST and dmin2 < np.inf:
         gap = np.sqrt(np.float64(_dist2(query, bucket_mean, bucket))) - bucket_radius[bucket]
         if gap > 0.0 and _prunable(gap * gap, dmin2):
@@ -126,8 +124,8 @@ def _scan_bucket(query, pu, pv, h, bucket, entries, entry_aux, bucket_start,
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
-                entry_aux, entry_far, entry_cell, cell_bucket, bucket_start, bucket_h,
-                bucket_mean, bucket_radius, scan_offsets, scan_bound2, n_fine,
+                entry_aux, entry_far, entry_cell, cell_bucket, cell_begin, cell_end,
+                bucket_h, bucket_mean, bucket_radius, scan_offsets, scan_bound2, fine_is_all,
                 fine_dd2_max, block, n_blocks, block_start, block_box,
                 block_offsets, block_bound2, entry_bound, run_scan):
     """Exact nearest entry of one query: (row in ``entries``, squared distance, b, d)."""
@@ -150,20 +148,16 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
     n_tests = 0
 
     # Phase 1: the paper's scan (Procedure 1) over the nearby cells, eq. 15 order.
-    runs, run_bound2, cell_begin, cell_end = run_scan
-    if runs.shape[0] > 0:
-        # Low dimensions: the same order, with the cells of one row that share
-        # a bound merged into runs, each a contiguous range of entries.
-        for o in range(runs.shape[0]):
-            if _prunable(run_bound2[o], dmin2):  # early termination, eq. 16
-                return best, dmin2, n_buckets, n_tests
-            best, dmin2, n_buckets, n_tests = _scan_run(
-                query, pu, pv, i, j, runs[o], n, delta, half_width, block, cell_begin,
-                cell_end, entries, best, dmin2, n_buckets, n_tests)
-        if n_fine == scan_offsets.shape[0]:  # phase 1 covered the whole grid
+    # Either in runs (low dimensions: the cells of one row that share a bound,
+    # one contiguous range of entries) or cell by cell; the other list is empty.
+    runs, run_bound2 = run_scan
+    for o in range(runs.shape[0]):
+        if _prunable(run_bound2[o], dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
-        n_fine = 0  # (the runs replace the cell-by-cell scan below)
-    for o in range(n_fine):
+        best, dmin2, n_buckets, n_tests = _scan_run(
+            query, pu, pv, i, j, runs[o], n, delta, half_width, block, cell_begin,
+            cell_end, entries, best, dmin2, n_buckets, n_tests)
+    for o in range(scan_offsets.shape[0]):
         if _prunable(scan_bound2[o], dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
         ci = i + scan_offsets[o, 0]
@@ -174,10 +168,11 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
         if bucket < 0:
             continue
         best, dmin2, n_buckets, n_tests = _scan_bucket(
-            query, pu, pv, h, bucket, entries, entry_aux, bucket_start, bucket_h,
-            bucket_mean, bucket_radius, ci * delta - half_width,
-            cj * delta - half_width, delta, best, dmin2, n_buckets, n_tests)
-    if n_fine == scan_offsets.shape[0]:  # phase 1 covered the whole grid
+            query, pu, pv, h, bucket, cell_begin[ci * n + cj], cell_end[ci * n + cj],
+            entries, entry_aux, bucket_h, bucket_mean, bucket_radius,
+            ci * delta - half_width, cj * delta - half_width, delta, best, dmin2,
+            n_buckets, n_tests)
+    if fine_is_all:  # phase 1 covered the whole grid
         return best, dmin2, n_buckets, n_tests
 
     # Phase 2: the query lies far from the table. Scan blocks of block x block
@@ -235,8 +230,9 @@ _CHUNK = 256
 
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry_aux,
-           entry_far, entry_cell, cell_bucket, bucket_start, bucket_h, bucket_mean,
-           bucket_radius, scan_offsets, scan_bound2, n_fine, fine_dd2_max, block,
+           entry_far, entry_cell, cell_bucket, cell_begin, cell_end, bucket_h,
+           bucket_mean, bucket_radius, scan_offsets, scan_bound2, fine_is_all,
+           fine_dd2_max, block,
            n_blocks, block_start, block_box, block_offsets, block_bound2, entry_bound,
            run_scan, out_row, out_dist, out_buckets, out_tests):
     """Nearest table row for every query (``prange`` over chunks of queries).
@@ -251,8 +247,8 @@ def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry
         for q in range(chunk * _CHUNK, min((chunk + 1) * _CHUNK, n_queries)):
             best, dmin2, nb, nd = _lookup_one(
                 queries[q], scratch, center, axes, half_width, delta, n, entries,
-                entry_aux, entry_far, entry_cell, cell_bucket, bucket_start, bucket_h,
-                bucket_mean, bucket_radius, scan_offsets, scan_bound2, n_fine,
+                entry_aux, entry_far, entry_cell, cell_bucket, cell_begin, cell_end,
+                bucket_h, bucket_mean, bucket_radius, scan_offsets, scan_bound2, fine_is_all,
                 fine_dd2_max, block, n_blocks, block_start, block_box,
                 block_offsets, block_bound2, entry_bound, run_scan)
             out_row[q] = best

@@ -74,11 +74,11 @@ def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndar
     while start < len(dd2):
         stop = start + int(np.searchsorted(dd2[start:], dd2[start], side="right"))
         group = offsets[start:stop]
-        first_seen = {}
+        by_row = {}
         for rank, (r, s) in enumerate(group.tolist()):
-            first_seen.setdefault(r, []).append((s, rank))
+            by_row.setdefault(r, []).append((s, rank))
         pieces = []
-        for r, cells in first_seen.items():
+        for r, cells in by_row.items():
             cells.sort()
             s0, rank0 = cells[0]
             prev = s0
@@ -201,11 +201,24 @@ class BucketGrid:
         fine_radius = max(2, int(round(np.sqrt(n) / 3)))
         block = max(2, int(round(np.sqrt(n) / 2)))
         n_blocks = -(-n // block)
-        block_id = (ci // block) * n_blocks + (cj // block)
 
-        # Entries sorted by block, then cell: every bucket and every block is a
-        # contiguous run (CSR storage at both levels).
-        order = np.lexsort((cell, block_id))
+        def block_of(row, col):
+            return (row // block) * n_blocks + col // block
+
+        def storage_key(row, col):
+            """Entries are stored by block, then cell in row-major order."""
+            return block_of(row, col) * (n * n) + row * n + col
+
+        # Every bucket and every block is a contiguous range (CSR storage at both
+        # levels), and so are the cells of one row within a block. Every cell,
+        # empty or not, has a begin and an end.
+        block_id = block_of(ci, cj)
+        key = storage_key(ci, cj)
+        order = np.argsort(key, kind="stable")
+        key_sorted = key[order]
+        all_keys = storage_key(*np.divmod(np.arange(n * n), n))
+        cell_begin = np.searchsorted(key_sorted, all_keys, side="left")
+        cell_end = np.searchsorted(key_sorted, all_keys, side="right")
         cell_sorted = cell[order]
         first = np.flatnonzero(np.r_[True, cell_sorted[1:] != cell_sorted[:-1]])
         counts = np.diff(np.r_[first, k_entries])
@@ -213,7 +226,6 @@ class BucketGrid:
         n_buckets = occupied.size
         cell_bucket = np.full(n * n, -1, dtype=np.int32)
         cell_bucket[occupied] = np.arange(n_buckets, dtype=np.int32)
-        bucket_start = np.r_[first, k_entries].astype(np.int64)
         bucket_of_entry = np.repeat(np.arange(n_buckets), counts)
         block_start = np.searchsorted(block_id[order], np.arange(n_blocks * n_blocks + 1))
 
@@ -241,17 +253,13 @@ class BucketGrid:
         fine_dd2_max = fine_radius * fine_radius
         n_fine = int(np.searchsorted(dd2, fine_dd2_max, side="right"))
         block_offsets, block_dd2 = _scan_order(n_blocks)
+        # Phase 1 scans offsets[:n_fine] either in runs of cells (low D) or
+        # cell by cell; the kernel gets one of the two lists, the other empty.
+        fine_offsets, fine_dd2 = offsets[:n_fine], dd2[:n_fine]
+        runs, run_dd2 = np.zeros((0, 3), dtype=np.int64), fine_dd2[:0]
         if dims <= _grid_kernels.RUN_SCAN_DIMS:
-            runs, run_dd2 = _row_runs(offsets[:n_fine], dd2[:n_fine])
-        else:
-            runs, run_dd2 = np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
-        # Entry range of every cell, empty cells included (begin == end), so that
-        # a run of cells of one row within a block is one range of entries.
-        sorted_key = block_id[order] * (n * n) + cell_sorted
-        all_ci, all_cj = np.divmod(np.arange(n * n), n)
-        cell_key = ((all_ci // block) * n_blocks + all_cj // block) * (n * n) + all_ci * n + all_cj
-        cell_begin = np.searchsorted(sorted_key, cell_key, side="left").astype(np.int64)
-        cell_end = np.searchsorted(sorted_key, cell_key, side="right").astype(np.int64)
+            runs, run_dd2 = _row_runs(fine_offsets, fine_dd2)
+            fine_offsets, fine_dd2 = fine_offsets[:0], fine_dd2[:0]
 
         self.n = n
         self.size = k_entries
@@ -267,15 +275,17 @@ class BucketGrid:
             n_axes, center, axes, float(half_width), float(delta), n, entries,
             np.ascontiguousarray(aux), np.ascontiguousarray(far),
             np.stack([ci[order], cj[order]], axis=1).astype(np.int64),
-            cell_bucket, bucket_start, np.ascontiguousarray(bucket_h),
-            np.ascontiguousarray(bucket_mean), bucket_radius, offsets,
-            (delta * delta) * dd2.astype(np.float64), n_fine, fine_dd2_max, block,
+            cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
+            np.ascontiguousarray(bucket_h), np.ascontiguousarray(bucket_mean),
+            bucket_radius, np.ascontiguousarray(fine_offsets),
+            (delta * delta) * fine_dd2.astype(np.float64), n_fine == offsets.shape[0],
+            fine_dd2_max, block,
             n_blocks, block_start.astype(np.int64), block_box, block_offsets,
             (block * delta) ** 2 * block_dd2.astype(np.float64),
             # The per-entry bound of phase 2 costs n_axes + 1 float64 terms; it
             # only pays when a full distance costs clearly more.
             dims > 2 * (n_axes + 1),
-            (runs, (delta * delta) * run_dd2.astype(np.float64), cell_begin, cell_end),
+            (runs, (delta * delta) * run_dd2.astype(np.float64)),
         )
 
     # ------------------------------------------------------------------ query
