@@ -18,6 +18,14 @@ the plane):
   at the coarse block level with the block side as delta.
 * eq. 12 (bucket truncation): |q - g| >= |q - mu| - rho for every g of a bucket
   with mean mu and radius rho.
+* the sketch bound: with A the k leading principal axes and r(x) the residual
+  beyond them, |q - g|^2 >= |A(q - g)|^2 + (r(q) - r(g))^2. The sketch
+  (A(x - b), r(x)) has at most ``SKETCH_LANES`` float32 lanes. Entries keep
+  their sketch, buckets and blocks the box of their entries' sketches; a
+  query's sketch is computed in float32 and widened into intervals that
+  contain the exact values (``_query_sketch``), so every test stays a true
+  lower bound. It stays tight where the manifold curves away from the plane,
+  and for queries far from the table or with many near-ties.
 """
 
 import numpy as np
@@ -35,6 +43,10 @@ _FASTMATH = {"reassoc", "contract"}
 # Up to this signature dimension a full distance costs no more than any bucket
 # test, so phase 1 tests whole runs of cells without looking at their buckets.
 RUN_SCAN_DIMS = 8
+# Lanes of a sketch: principal-axis coordinates, then the residual (one AVX-512
+# register of float32). Unused axis lanes are zero in queries and boxes alike.
+SKETCH_LANES = 16
+_U32 = 2.0 ** -24  # unit roundoff of float32
 
 
 @njit(cache=True, inline="always")
@@ -98,18 +110,90 @@ def _interval_gap(x, lo, hi):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _scan_bucket(query, pu, pv, h, bucket, start, stop, entries, entry_aux, bucket_h,
-                 bucket_mean, bucket_radius, box_u0, box_v0, delta, best, dmin2,
-                 n_buckets, n_tests):
-    """Test one non-empty bucket (entries start .. stop - 1); update (best, dmin2, b, d)."""
+def _query_sketch(query, r2, sketch, low, high):
+    """Intervals [low, high] (float32, per lane) that contain the query's exact sketch.
+
+    ``r2`` is |q - b|^2 (float64). The axis coordinates are float32 dot
+    products: each is within ``tau`` of A(q - b), from the standard bound
+    D u sum_k |q_k A_ak| <= D u |q| on a float32 dot product (|A_a| = 1), plus
+    the rounding of the stored offset A b and of the result. The residual is
+    r^2 = |q - b|^2 - |A(q - b)|^2 / sigma^2, with sigma >= 1 the largest
+    singular value of the float32 axes: rounded axes are not exactly
+    orthonormal, and this keeps r a seminorm, so the bound holds. Its
+    interval follows from the errors of the squared coordinates. Every
+    interval is further widened by ``point_slack``, the largest distance
+    between an entry's exact sketch and its stored float32 one, so stored
+    sketches (and boxes of them) can be compared as they are.
+    """
+    axes, offset, n_axes, center_norm, inv_sigma2, point_slack = sketch
+    q_norm2 = 0.0
+    for k in range(query.shape[0]):
+        q_norm2 += np.float64(query[k]) * query[k]
+    tau = (1.25 * (query.shape[0] + 8) * _U32 * (np.sqrt(q_norm2) + center_norm)
+           + point_slack)
+    res2 = r2
+    err2 = 1e-12 * r2
+    for a in range(n_axes):
+        t = np.float32(0.0)
+        for k in range(query.shape[0]):
+            t += query[k] * axes[a, k]
+        x = np.float64(t - offset[a])
+        res2 -= inv_sigma2 * x * x
+        err2 += tau * (2.0 * abs(x) + tau)
+        low[a] = x - tau
+        high[a] = x + tau
+    low[n_axes] = np.sqrt(max(res2 - err2, 0.0)) * (1.0 - 4.0 * _U32) - point_slack
+    high[n_axes] = np.sqrt(max(res2 + err2, 0.0)) * (1.0 + 4.0 * _U32) + point_slack
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _box_gap2(low, high, boxes, row, lanes):
+    """Squared distance between a query's sketch intervals and box ``row`` (lo, hi)."""
+    acc = np.float32(0.0)
+    for a in range(lanes):
+        g = max(boxes[row, 0, a] - high[a], low[a] - boxes[row, 1, a], np.float32(0.0))
+        acc += g * g
+    return np.float64(acc)
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _point_gap2(low, high, points, row, lanes):
+    """Squared distance between a query's sketch intervals and an entry's sketch."""
+    acc = np.float32(0.0)
+    for a in range(lanes):
+        g = max(points[row, a] - high[a], low[a] - points[row, a], np.float32(0.0))
+        acc += g * g
+    return np.float64(acc)
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, stop,
+                 entries, entry_aux, bucket_h, boxes, bucket_mean, bucket_radius,
+                 box_u0, box_v0, delta, best, dmin2, n_buckets, n_tests):
+    """Test one non-empty bucket (entries start .. stop - 1); update (best, dmin2, b, d).
+
+    (pu, pv, h) is the query's (u, v, h); with ``has_sketch`` its sketch
+    intervals (``low``, ``high``, ``lanes`` used) are known. The cheap test comes
+    first: the cell's rectangle and the bucket's interval of distances from the
+    PCA plane. Then either the sketch box, or bucket truncation (eq. 12) and the
+    per-entry (u, v, h) bound.
+    """
     gu = _interval_gap(pu, box_u0, box_u0 + delta)
     gv = _interval_gap(pv, box_v0, box_v0 + delta)
     gh = _interval_gap(h, bucket_h[bucket, 0], bucket_h[bucket, 1])
     if _prunable(gu * gu + gv * gv + gh * gh, dmin2):
         return best, dmin2, n_buckets, n_tests
+    if has_sketch:
+        if _prunable(_box_gap2(low, high, boxes, bucket, lanes), dmin2):
+            return best, dmin2, n_buckets, n_tests
+        n_buckets += 1
+        for e in range(start, stop):
+            best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
+        return best, dmin2, n_buckets, n_tests
     n_buckets += 1
     if stop - start >= _MIN_ENTRIES_FOR_BALL_TEST and dmin2 < np.inf:
-        gap = np.sqrt(np.float64(_dist2(query, bucket_mean, bucket))) - bucket_radius[bucket]
+        centre_dist = np.sqrt(np.float64(_dist2(query, bucket_mean, bucket)))
+        gap = centre_dist - bucket_radius[bucket]
         if gap > 0.0 and _prunable(gap * gap, dmin2):
             return best, dmin2, n_buckets, n_tests
     for e in range(start, stop):
@@ -123,12 +207,16 @@ def _scan_bucket(query, pu, pv, h, bucket, start, stop, entries, entry_aux, buck
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
-                entry_aux, entry_far, entry_cell, cell_bucket, cell_begin, cell_end,
-                bucket_h, bucket_mean, bucket_radius, scan_offsets, scan_bound2, fine_is_all,
-                fine_dd2_max, block, n_blocks, block_start, block_box,
+def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
+                entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
+                buckets, sketch, scan_offsets, scan_bound2, fine_is_all,
+                fine_dd2_max, block, n_blocks, block_start, block_boxes,
                 block_offsets, block_bound2, entry_bound, run_scan):
-    """Exact nearest entry of one query: (row in ``entries``, squared distance, b, d)."""
+    """Exact nearest entry of one query: (row in ``entries``, squared distance, b, d).
+
+    ``low`` and ``high`` are the caller's scratch space for the query's sketch
+    intervals (``SKETCH_LANES`` float32 each).
+    """
     # Projection on the PCA plane and distance from it, in float64.
     pu = 0.0
     pv = 0.0
@@ -157,6 +245,13 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
         best, dmin2, n_buckets, n_tests = _scan_run(
             query, pu, pv, i, j, runs[o], n, delta, half_width, block, cell_begin,
             cell_end, entries, best, dmin2, n_buckets, n_tests)
+    # Cell by cell: the query's sketch costs about as much as n_axes full
+    # distances, so it is computed once the scan has spent that much without
+    # finishing (and paid back by the sketch box test from then on): never
+    # more than twice the cost of the better choice made in hindsight.
+    n_axes = sketch[2]
+    has_sketch = False
+    bucket_h, boxes, bucket_mean, bucket_radius = buckets
     for o in range(scan_offsets.shape[0]):
         if _prunable(scan_bound2[o], dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
@@ -167,27 +262,24 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
         bucket = cell_bucket[ci * n + cj]
         if bucket < 0:
             continue
+        if not has_sketch and n_tests >= n_axes:
+            _query_sketch(query, r2, sketch, low, high)
+            has_sketch = True
         best, dmin2, n_buckets, n_tests = _scan_bucket(
-            query, pu, pv, h, bucket, cell_begin[ci * n + cj], cell_end[ci * n + cj],
-            entries, entry_aux, bucket_h, bucket_mean, bucket_radius,
+            query, pu, pv, h, has_sketch, low, high, n_axes + 1, bucket,
+            cell_begin[ci * n + cj], cell_end[ci * n + cj], entries, entry_aux, bucket_h,
+            boxes, bucket_mean, bucket_radius,
             ci * delta - half_width, cj * delta - half_width, delta, best, dmin2,
             n_buckets, n_tests)
     if fine_is_all:  # phase 1 covered the whole grid
         return best, dmin2, n_buckets, n_tests
 
     # Phase 2: the query lies far from the table. Scan blocks of block x block
-    # cells in the same order at the coarse level; bound blocks and entries with
-    # the k leading principal components plus the residual beyond them, which
-    # stays tight where the manifold curves away from the plane.
-    n_axes = scratch.shape[0] - 1
-    res2 = r2
-    for a in range(n_axes):
-        t = 0.0
-        for k in range(query.shape[0]):
-            t += (np.float64(query[k]) - center[k]) * axes[a, k]
-        scratch[a] = t
-        res2 -= t * t
-    scratch[n_axes] = np.sqrt(max(res2, 0.0))
+    # cells in the same order at the coarse level; bound blocks and entries
+    # with the sketch.
+    if not has_sketch:
+        _query_sketch(query, r2, sketch, low, high)
+    lanes = n_axes + 1
     bi = i // block
     bj = j // block
     for o in range(block_offsets.shape[0]):
@@ -202,11 +294,7 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
         stop = block_start[kb + 1]
         if start == stop:
             continue
-        lb = 0.0
-        for a in range(n_axes + 1):
-            g = _interval_gap(scratch[a], block_box[kb, 2 * a], block_box[kb, 2 * a + 1])
-            lb += g * g
-        if _prunable(lb, dmin2):
+        if _prunable(_box_gap2(low, high, block_boxes, kb, lanes), dmin2):
             continue
         n_buckets += 1
         for e in range(start, stop):
@@ -214,13 +302,9 @@ def _lookup_one(query, scratch, center, axes, half_width, delta, n, entries,
             rj = max(abs(entry_cell[e, 1] - j) - 1, 0)
             if ri * ri + rj * rj <= fine_dd2_max:
                 continue  # phase 1 tested it
-            if entry_bound:
-                lb = 0.0
-                for a in range(n_axes + 1):
-                    g = scratch[a] - entry_far[e, a]
-                    lb += g * g
-                if _prunable(lb, dmin2):
-                    continue
+            if entry_bound and _prunable(_point_gap2(low, high, entry_sketch, e, lanes),
+                                         dmin2):
+                continue
             best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
     return best, dmin2, n_buckets, n_tests
 
@@ -229,28 +313,28 @@ _CHUNK = 256
 
 
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def lookup(queries, far_axes, center, axes, half_width, delta, n, entries, entry_aux,
-           entry_far, entry_cell, cell_bucket, cell_begin, cell_end, bucket_h,
-           bucket_mean, bucket_radius, scan_offsets, scan_bound2, fine_is_all,
-           fine_dd2_max, block,
-           n_blocks, block_start, block_box, block_offsets, block_bound2, entry_bound,
-           run_scan, out_row, out_dist, out_buckets, out_tests):
+def lookup(queries, center, axes, half_width, delta, n, entries, entry_aux, entry_sketch,
+           entry_cell, cell_bucket, cell_begin, cell_end, buckets, sketch, scan_offsets,
+           scan_bound2, fine_is_all, fine_dd2_max, block, n_blocks, block_start,
+           block_boxes, block_offsets, block_bound2, entry_bound, run_scan, out_row,
+           out_dist, out_buckets, out_tests):
     """Nearest table row for every query (``prange`` over chunks of queries).
 
-    Each chunk allocates its (far_axes + 1) scratch values once, outside the
-    per-query loop.
+    Each chunk allocates its scratch space (a query's sketch intervals) once,
+    outside the per-query loop.
     """
     n_queries = queries.shape[0]
     n_chunks = (n_queries + _CHUNK - 1) // _CHUNK
     for chunk in prange(n_chunks):
-        scratch = np.empty(far_axes + 1)
+        low = np.zeros(SKETCH_LANES, dtype=np.float32)
+        high = np.zeros(SKETCH_LANES, dtype=np.float32)
         for q in range(chunk * _CHUNK, min((chunk + 1) * _CHUNK, n_queries)):
             best, dmin2, nb, nd = _lookup_one(
-                queries[q], scratch, center, axes, half_width, delta, n, entries,
-                entry_aux, entry_far, entry_cell, cell_bucket, cell_begin, cell_end,
-                bucket_h, bucket_mean, bucket_radius, scan_offsets, scan_bound2, fine_is_all,
-                fine_dd2_max, block, n_blocks, block_start, block_box,
-                block_offsets, block_bound2, entry_bound, run_scan)
+                queries[q], low, high, center, axes, half_width, delta, n, entries,
+                entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
+                buckets, sketch, scan_offsets, scan_bound2, fine_is_all, fine_dd2_max,
+                block, n_blocks, block_start, block_boxes, block_offsets, block_bound2,
+                entry_bound, run_scan)
             out_row[q] = best
             out_dist[q] = np.sqrt(dmin2)
             out_buckets[q] = nb

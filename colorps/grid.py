@@ -21,8 +21,8 @@ from .errors import InputError
 
 __all__ = ["BucketGrid", "QueryStats"]
 
-# Principal axes used to bound distances of queries far from the table.
-_FAR_AXES = 8
+# Principal axes in a sketch (at most SKETCH_LANES - 1; the last lane is the residual).
+_SKETCH_AXES = 15
 
 
 @dataclass(frozen=True)
@@ -97,6 +97,48 @@ def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.array(runs, dtype=np.int64).reshape(-1, 3), np.array(bounds, dtype=np.int64)
 
 
+def _sketches(principal: np.ndarray, center: np.ndarray, entries: np.ndarray):
+    """Sketch definition (for the kernel) and every entry's sketch.
+
+    ``principal`` holds the principal axes as rows, leading first; ``entries``
+    (K, D) float64. The sketch of x is (A(x - b), r(x)) in ``SKETCH_LANES``
+    float32 lanes, A the float32-rounded leading axes, r^2 = |x - b|^2 -
+    |A(x - b)|^2 / sigma^2 (see ``_grid_kernels._query_sketch``); lanes past
+    the residual are 0. Returns the tuple the kernel takes and the (K, lanes)
+    float32 entry sketches.
+    """
+    lanes = _grid_kernels.SKETCH_LANES
+    dims = entries.shape[1]
+    n_axes = min(_SKETCH_AXES, lanes - 1, dims)
+    axes32 = np.zeros((lanes - 1, dims), dtype=np.float32)
+    axes32[:n_axes] = principal[:n_axes]
+    axes64 = axes32[:n_axes].astype(np.float64)
+    sigma = max(1.0, np.linalg.norm(axes64, 2)) * (1 + 1e-12)
+    offset = np.zeros(lanes - 1, dtype=np.float32)
+    offset[:n_axes] = axes64 @ center
+    centred = entries - center
+    norms = np.sqrt((centred * centred).sum(axis=1))
+    coords = np.zeros((entries.shape[0], lanes))
+    coords[:, :n_axes] = centred @ axes64.T
+    res2 = norms ** 2 - (coords[:, :n_axes] ** 2).sum(axis=1) / sigma ** 2
+    coords[:, n_axes] = np.sqrt(np.maximum(res2, 0.0))
+    points = coords.astype(np.float32)
+    # Stored sketches are off by float32 rounding, and residuals by the float64
+    # rounding of their cancellation; queries' intervals are widened by this.
+    point_slack = 4.0 * 2.0 ** -24 * (1.0 + norms.max()) + 1e-7 * (1.0 + norms.max())
+    sketch = (axes32, offset, n_axes, float(np.linalg.norm(center)), 1.0 / sigma ** 2,
+              float(point_slack))
+    return sketch, points
+
+
+def _boxes(points: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """(len(first), 2, lanes) low and high corners of consecutive groups of points."""
+    boxes = np.empty((first.size, 2, points.shape[1]), dtype=np.float32)
+    boxes[:, 0] = np.minimum.reduceat(points, first, axis=0)
+    boxes[:, 1] = np.maximum.reduceat(points, first, axis=0)
+    return boxes
+
+
 class BucketGrid:
     """Exact nearest-neighbour index for a table of signatures (a 2-D manifold).
 
@@ -128,19 +170,25 @@ class BucketGrid:
     -----
     Besides the paper's structure (PCA plane, buckets in CSR order with their
     means and radii, the precomputed scan order of eq. 15, bucket truncation of
-    eq. 12 and early termination of eq. 16), two exact prunings keep lookups of
-    queries far from the table cheap; see ``docs/method.md``:
+    eq. 12 and early termination of eq. 16), three exact prunings keep lookups
+    cheap; see ``docs/method.md``:
 
     * every entry and bucket also carries its distance h from the PCA plane, so
       |P(q - g)|^2 + (h(q) - h(g))^2, a lower bound of |q - g|^2, rejects most
       entries for 8 flops instead of D;
+    * every entry has a *sketch*: its coordinates on up to 15 leading principal
+      axes and the residual beyond them (float32). Buckets and blocks keep the
+      box of their entries' sketches, a lower bound that stays tight where the
+      manifold curves away from the plane. A lookup computes its query's
+      sketch only once it has spent about as much on full distances;
     * once the scan has passed a few cells without terminating, it continues at
-      a coarse level of blocks of cells with bounding boxes in (u, v, h), so a
-      query at distance r from the table no longer costs (r / delta)^2 cells.
+      a coarse level of blocks of cells with sketch boxes, so a query at
+      distance r from the table no longer costs (r / delta)^2 cells.
 
-    Distances are computed in float32, projections and bounds in float64; a
-    pruning test keeps a relative margin of 1e-4, so the returned entry is the
-    brute-force nearest up to float32 rounding of near-ties.
+    Distances are computed in float32, projections and bounds in float64 or in
+    float32 with rounding-error intervals; a pruning test keeps a relative
+    margin of 1e-4, so the returned entry is the brute-force nearest up to
+    float32 rounding of near-ties.
 
     References
     ----------
@@ -180,15 +228,13 @@ class BucketGrid:
         center = t64.mean(axis=0)
         centred = t64 - center
         _, eigvec = np.linalg.eigh(centred.T @ centred)  # moment matrix, ascending
-        n_axes = max(2, min(dims, _FAR_AXES))
-        axes = np.zeros((n_axes, dims))
-        leading = eigvec[:, ::-1].T[:n_axes]
-        axes[: leading.shape[0]] = leading  # D = 1 leaves a zero second axis
-        proj = centred @ axes.T  # (K, n_axes), same arithmetic as the kernel
+        principal = eigvec[:, ::-1].T  # rows, leading first
+        axes = np.zeros((2, dims))
+        axes[: min(2, dims)] = principal[:2]  # D = 1 leaves a zero second axis
+        proj = centred @ axes.T  # (K, 2), same arithmetic as the kernel
         r2 = (centred * centred).sum(axis=1)
         pu, pv = proj[:, 0], proj[:, 1]
         h = np.sqrt(np.maximum(r2 - pu * pu - pv * pv, 0.0))
-        h_far = np.sqrt(np.maximum(r2 - (proj * proj).sum(axis=1), 0.0))
         extent = max(np.abs(pu).max(), np.abs(pv).max())
         half_width = extent + 1e-6 * (1.0 + extent)  # eq. 11, eps > 0
         delta = 2.0 * half_width / n
@@ -231,23 +277,21 @@ class BucketGrid:
 
         entries = np.ascontiguousarray(table[order])
         aux = np.stack([pu[order], pv[order], h[order]], axis=1)
-        far = np.concatenate([proj[order], h_far[order, None]], axis=1)
-        bucket_h = np.stack([np.minimum.reduceat(aux[:, 2], first),
-                             np.maximum.reduceat(aux[:, 2], first)], axis=1)
+        bucket_h = np.stack([np.minimum.reduceat(h[order], first),
+                             np.maximum.reduceat(h[order], first)], axis=1)
         sorted64 = t64[order]
         bucket_mean = (np.add.reduceat(sorted64, first, axis=0) / counts[:, None])
         bucket_mean = bucket_mean.astype(np.float32)
         # Radius about the stored (float32) mean, inflated for rounding.
         spread = np.sqrt(((sorted64 - bucket_mean[bucket_of_entry]) ** 2).sum(axis=1))
         bucket_radius = np.maximum.reduceat(spread, first) * (1 + 1e-6) + 1e-7
-
-        block_box = np.empty((n_blocks * n_blocks, 2 * (n_axes + 1)))
-        block_box[:, 0::2] = np.inf
-        block_box[:, 1::2] = -np.inf
-        sorted_block = block_id[order]
-        for col in range(n_axes + 1):
-            np.minimum.at(block_box[:, 2 * col], sorted_block, far[:, col])
-            np.maximum.at(block_box[:, 2 * col + 1], sorted_block, far[:, col])
+        sketch, entry_sketch = _sketches(principal, center, sorted64)
+        bucket_boxes = _boxes(entry_sketch, first)
+        # Empty blocks are never tested; give them an empty box all the same.
+        block_boxes = np.empty((n_blocks * n_blocks, 2, entry_sketch.shape[1]), np.float32)
+        block_boxes[:, 0], block_boxes[:, 1] = np.inf, -np.inf
+        filled = block_start[:-1] < block_start[1:]
+        block_boxes[filled] = _boxes(entry_sketch, block_start[:-1][filled])
 
         offsets, dd2 = _scan_order(n)
         fine_dd2_max = fine_radius * fine_radius
@@ -271,20 +315,21 @@ class BucketGrid:
         self.bucket_counts = np.zeros(n * n, dtype=np.int64)
         self.bucket_counts[occupied] = counts
         self._entry_index = order.astype(np.int64)
+        self._sketch, self._entry_sketch = sketch, entry_sketch  # for tests
         self._kernel_args = (
-            n_axes, center, axes, float(half_width), float(delta), n, entries,
-            np.ascontiguousarray(aux), np.ascontiguousarray(far),
+            center, axes, float(half_width), float(delta), n, entries,
+            np.ascontiguousarray(aux), entry_sketch,
             np.stack([ci[order], cj[order]], axis=1).astype(np.int64),
             cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
-            np.ascontiguousarray(bucket_h), np.ascontiguousarray(bucket_mean),
-            bucket_radius, np.ascontiguousarray(fine_offsets),
+            (np.ascontiguousarray(bucket_h), bucket_boxes,
+             np.ascontiguousarray(bucket_mean), bucket_radius), sketch, np.ascontiguousarray(fine_offsets),
             (delta * delta) * fine_dd2.astype(np.float64), n_fine == offsets.shape[0],
             fine_dd2_max, block,
-            n_blocks, block_start.astype(np.int64), block_box, block_offsets,
+            n_blocks, block_start.astype(np.int64), block_boxes, block_offsets,
             (block * delta) ** 2 * block_dd2.astype(np.float64),
-            # The per-entry bound of phase 2 costs n_axes + 1 float64 terms; it
-            # only pays when a full distance costs clearly more.
-            dims > 2 * (n_axes + 1),
+            # The per-entry sketch bound of phase 2 costs one vector of float32
+            # lanes; it only pays when a full distance costs clearly more.
+            dims > 2 * _grid_kernels.SKETCH_LANES,
             (runs, (delta * delta) * run_dd2.astype(np.float64)),
         )
 

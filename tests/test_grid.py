@@ -69,6 +69,34 @@ def test_far_queries_exact(m, colour, rng):
     assert stats.tests < 0.3 * table.shape[0]
 
 
+@pytest.mark.parametrize("dims, offset", [(3, 0.0), (12, 0.0), (90, 0.0), (90, 50.0)])
+def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
+    """The sketch test never exceeds the true squared distance (float64), even
+    for queries far away or a table far from the origin (larger rounding), and
+    it is tight enough to matter: most of the distance on near queries."""
+    from colorps import _grid_kernels as kernels
+
+    table = manifold(dims, 2000, rng) + np.float32(offset)
+    queries = np.concatenate([noisy(table, rng, 200, 0.02),
+                              noisy(table, rng, 50, 3.0)])
+    grid = BucketGrid(table)
+    sketch, points = grid._sketch, grid._entry_sketch
+    entries = table[grid._entry_index].astype(np.float64)  # storage order
+    lanes = sketch[2] + 1
+    low = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
+    high = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
+    ratios = []
+    for q in queries:
+        r2 = float(((q.astype(np.float64) - grid.center) ** 2).sum())
+        kernels._query_sketch(q, r2, sketch, low, high)
+        true2 = ((entries - q.astype(np.float64)) ** 2).sum(axis=1)
+        bound2 = np.array([kernels._point_gap2(low, high, points, e, lanes)
+                           for e in range(entries.shape[0])])
+        assert np.all(bound2 <= true2 * (1 + 1e-5) + 1e-12), (bound2 / true2).max()
+        ratios.append(np.median(bound2 / true2))
+    assert np.median(ratios[:200]) > 0.5
+
+
 def test_tiny_tables(rng):
     for size in (1, 2):
         table = rng.normal(size=(size, 4)).astype(np.float32)
