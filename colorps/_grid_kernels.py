@@ -209,7 +209,7 @@ def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
                 entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
-                buckets, sketch, scan_offsets, scan_bound2, fine_is_all,
+                buckets, sketch, scan_offsets, scan_bound, fine_is_all,
                 fine_dd2_max, block, n_blocks, block_start, block_boxes,
                 block_offsets, block_bound2, entry_bound, run_scan):
     """Exact nearest entry of one query: (row in ``entries``, squared distance, b, d).
@@ -229,6 +229,12 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     h = np.sqrt(max(r2 - pu * pu - pv * pv, 0.0))
     i = min(max(int(np.floor((pu + half_width) / delta)), 0), n - 1)
     j = min(max(int(np.floor((pv + half_width) / delta)), 0), n - 1)
+    # Eq. 15 bounds a cell's distance for a query anywhere in cell (i, j). This
+    # query lies ``margin`` inside every border of its cell, so every cell but
+    # its own is at least (delta ||(r, s)||_dd + margin) away.
+    fu = (pu + half_width) / delta - i
+    fv = (pv + half_width) / delta - j
+    margin = max(min(fu, 1.0 - fu, fv, 1.0 - fv), 0.0) * delta
 
     best = -1
     dmin2 = np.inf
@@ -238,9 +244,9 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     # Phase 1: the paper's scan (Procedure 1) over the nearby cells, eq. 15 order.
     # Either in runs (low dimensions: the cells of one row that share a bound,
     # one contiguous range of entries) or cell by cell; the other list is empty.
-    runs, run_bound2 = run_scan
+    runs, run_bound = run_scan
     for o in range(runs.shape[0]):
-        if _prunable(run_bound2[o], dmin2):  # early termination, eq. 16
+        if _prunable((run_bound[o] + margin) ** 2, dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
         best, dmin2, n_buckets, n_tests = _scan_run(
             query, pu, pv, i, j, runs[o], n, delta, half_width, block, cell_begin,
@@ -253,7 +259,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     has_sketch = False
     bucket_h, boxes, bucket_mean, bucket_radius = buckets
     for o in range(scan_offsets.shape[0]):
-        if _prunable(scan_bound2[o], dmin2):  # early termination, eq. 16
+        if _prunable((scan_bound[o] + margin) ** 2, dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
         ci = i + scan_offsets[o, 0]
         cj = j + scan_offsets[o, 1]
@@ -315,7 +321,7 @@ _CHUNK = 256
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def lookup(queries, center, axes, half_width, delta, n, entries, entry_aux, entry_sketch,
            entry_cell, cell_bucket, cell_begin, cell_end, buckets, sketch, scan_offsets,
-           scan_bound2, fine_is_all, fine_dd2_max, block, n_blocks, block_start,
+           scan_bound, fine_is_all, fine_dd2_max, block, n_blocks, block_start,
            block_boxes, block_offsets, block_bound2, entry_bound, run_scan, out_row,
            out_dist, out_buckets, out_tests):
     """Nearest table row for every query (``prange`` over chunks of queries).
@@ -332,7 +338,7 @@ def lookup(queries, center, axes, half_width, delta, n, entries, entry_aux, entr
             best, dmin2, nb, nd = _lookup_one(
                 queries[q], low, high, center, axes, half_width, delta, n, entries,
                 entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
-                buckets, sketch, scan_offsets, scan_bound2, fine_is_all, fine_dd2_max,
+                buckets, sketch, scan_offsets, scan_bound, fine_is_all, fine_dd2_max,
                 block, n_blocks, block_start, block_boxes, block_offsets, block_bound2,
                 entry_bound, run_scan)
             out_row[q] = best

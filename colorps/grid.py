@@ -323,7 +323,7 @@ class BucketGrid:
             cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
             (np.ascontiguousarray(bucket_h), bucket_boxes,
              np.ascontiguousarray(bucket_mean), bucket_radius), sketch, np.ascontiguousarray(fine_offsets),
-            (delta * delta) * fine_dd2.astype(np.float64), n_fine == offsets.shape[0],
+            delta * np.sqrt(fine_dd2.astype(np.float64)), n_fine == offsets.shape[0],
             fine_dd2_max, block,
             n_blocks, block_start.astype(np.int64), block_boxes, block_offsets,
             (block * delta) ** 2 * block_dd2.astype(np.float64),
@@ -331,7 +331,7 @@ class BucketGrid:
             # lanes; it pays when a full distance costs more (measured: 5-7 %
             # faster at D = 30 than without it).
             dims > _grid_kernels.SKETCH_LANES,
-            (runs, (delta * delta) * run_dd2.astype(np.float64)),
+            (runs, delta * np.sqrt(run_dd2.astype(np.float64))),
         )
 
     # ------------------------------------------------------------------ query
