@@ -97,7 +97,8 @@ def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.array(runs, dtype=np.int64).reshape(-1, 3), np.array(bounds, dtype=np.int64)
 
 
-def _sketches(principal: np.ndarray, center: np.ndarray, entries: np.ndarray):
+def _sketches(principal: np.ndarray, center: np.ndarray,
+              entries: np.ndarray) -> tuple[tuple, np.ndarray]:
     """Sketch definition (for the kernel) and every entry's sketch.
 
     ``principal`` holds the principal axes as rows, leading first; ``entries``
@@ -322,7 +323,8 @@ class BucketGrid:
             np.stack([ci[order], cj[order]], axis=1).astype(np.int64),
             cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
             (np.ascontiguousarray(bucket_h), bucket_boxes,
-             np.ascontiguousarray(bucket_mean), bucket_radius), sketch, np.ascontiguousarray(fine_offsets),
+             np.ascontiguousarray(bucket_mean), bucket_radius),
+            sketch, np.ascontiguousarray(fine_offsets),
             delta * np.sqrt(fine_dd2.astype(np.float64)), n_fine == offsets.shape[0],
             fine_dd2_max, block,
             n_blocks, block_start.astype(np.int64), block_boxes, block_offsets,
