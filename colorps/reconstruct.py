@@ -219,7 +219,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
         cols = np.concatenate([np.arange(k * m, (k + 1) * m) for k in chosen])
         t0 = time.perf_counter()
         table = np.ascontiguousarray(gauge_sig.signatures[table_px][:, cols])
-        queries = np.ascontiguousarray(scene_sig.signatures[pixels][:, cols])
+        ys, xs = _tile_order(pixels)
+        queries = np.ascontiguousarray(scene_sig.signatures[ys, xs][:, cols])
         extra = {}
         if grid_n == "auto":
             extra["sample"] = queries[:: max(1, len(queries) // 4000)]
@@ -231,12 +232,12 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
         t_lookup += time.perf_counter() - t0
         buckets_total += b_sum
         tests_total += d_sum
-        normals[pixels] = gauge.normals[table_px][rows]
-        quality[pixels] = dist / np.sqrt(len(chosen))
-        match[pixels] = np.flatnonzero(table_px)[rows]
+        normals[ys, xs] = gauge.normals[table_px][rows]
+        quality[ys, xs] = dist / np.sqrt(len(chosen))
+        match[ys, xs] = np.flatnonzero(table_px)[rows]
         bands_used[pixels] = code
         grids.append(dict(bands=chosen, table_size=int(table.shape[0]), grid_n=grid.n,
-                          pixels=int(pixels.sum())))
+                          pixels=int(ys.size)))
 
     matched = match >= 0
     solved = matched.copy()
@@ -278,6 +279,24 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, *,
                      total=time.perf_counter() - t_start),
     )
     return Reconstruction(normals, albedo, quality, solved, reason, bands_used, stats)
+
+
+def _tile_order(pixels: np.ndarray, tile: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices of the true ``pixels``, tile by tile.
+
+    Tiles of ``tile`` x ``tile`` pixels in row-major order, pixels row-major
+    within a tile. Neighbouring pixels have similar normals and look up the same
+    gauge entries, which then stay in the CPU's caches: on the Table 1 scene
+    (1024-pixel rows) colour m = 30 lookups are ~18 % faster than row by row
+    (docs/benchmarks.md).
+    """
+    ys, xs = np.nonzero(pixels)  # row-major, which a stable sort keeps within tiles
+    tiles_across = -(-pixels.shape[1] // tile)
+    key = (ys // tile) * tiles_across + xs // tile
+    if key.size and key.max() < 2 ** 16:
+        key = key.astype(np.uint16)  # numpy sorts small integers by radix sort
+    order = np.argsort(key, kind="stable")
+    return ys[order], xs[order]
 
 
 def _lookup(grid: BucketGrid, queries: np.ndarray, threads, progress: bool, label: str):

@@ -144,3 +144,14 @@ def test_mismatched_inputs(change, message):
         reconstruct(s, g, gauge)
     with pytest.raises(InputError, match="mask"):
         reconstruct(scene, gauge_stack, gauge, mask=np.ones((3, 3), bool))
+
+
+def test_tile_order_is_a_permutation_tile_by_tile(rng):
+    from colorps.reconstruct import _tile_order
+
+    pixels = rng.random((70, 45)) < 0.6
+    ys, xs = _tile_order(pixels, tile=16)
+    assert sorted(zip(ys.tolist(), xs.tolist())) == sorted(zip(*np.nonzero(pixels)))
+    # Tiles in row-major order, and pixels row-major inside each tile.
+    key = np.stack([ys // 16, xs // 16, ys, xs], axis=1)
+    assert all(tuple(a) < tuple(b) for a, b in zip(key[:-1], key[1:]))
