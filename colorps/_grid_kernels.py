@@ -147,29 +147,23 @@ def _query_sketch(query, r2, sketch, low, high):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _box_gap2(low, high, boxes, row, lanes):
-    """Squared distance between a query's sketch intervals and box ``row`` (lo, hi)."""
+def _sketch_gap2(low, high, box_low, box_high, row, lanes):
+    """Squared distance between a query's sketch intervals and box ``row``.
+
+    A box is one bucket's or block's (``box_low``, ``box_high`` corners), or an
+    entry's own sketch (the same array as both corners).
+    """
     acc = np.float32(0.0)
     for a in range(lanes):
-        g = max(boxes[row, 0, a] - high[a], low[a] - boxes[row, 1, a], np.float32(0.0))
-        acc += g * g
-    return np.float64(acc)
-
-
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _point_gap2(low, high, points, row, lanes):
-    """Squared distance between a query's sketch intervals and an entry's sketch."""
-    acc = np.float32(0.0)
-    for a in range(lanes):
-        g = max(points[row, a] - high[a], low[a] - points[row, a], np.float32(0.0))
+        g = max(box_low[row, a] - high[a], low[a] - box_high[row, a], np.float32(0.0))
         acc += g * g
     return np.float64(acc)
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, stop,
-                 entries, entry_aux, bucket_h, boxes, bucket_mean, bucket_radius,
-                 box_u0, box_v0, delta, best, dmin2, n_buckets, n_tests):
+                 entries, entry_aux, bucket_h, box_low, box_high, bucket_mean,
+                 bucket_radius, box_u0, box_v0, delta, best, dmin2, n_buckets, n_tests):
     """Test one non-empty bucket (entries start .. stop - 1); update (best, dmin2, b, d).
 
     (pu, pv, h) is the query's (u, v, h); with ``has_sketch`` its sketch
@@ -184,7 +178,7 @@ def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, 
     if _prunable(gu * gu + gv * gv + gh * gh, dmin2):
         return best, dmin2, n_buckets, n_tests
     if has_sketch:
-        if _prunable(_box_gap2(low, high, boxes, bucket, lanes), dmin2):
+        if _prunable(_sketch_gap2(low, high, box_low, box_high, bucket, lanes), dmin2):
             return best, dmin2, n_buckets, n_tests
         n_buckets += 1
         for e in range(start, stop):
@@ -253,11 +247,11 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
             cell_end, entries, best, dmin2, n_buckets, n_tests)
     # Cell by cell: the query's sketch costs about as much as n_axes full
     # distances, so it is computed once the scan has spent that much without
-    # finishing (and paid back by the sketch box test from then on): never
-    # more than twice the cost of the better choice made in hindsight.
+    # finishing (and paid back by the sketch box test from then on): the
+    # ski-rental rule, within about twice the better choice made in hindsight.
     n_axes = sketch[2]
     has_sketch = False
-    bucket_h, boxes, bucket_mean, bucket_radius = buckets
+    bucket_h, box_low, box_high, bucket_mean, bucket_radius = buckets
     for o in range(scan_offsets.shape[0]):
         if _prunable((scan_bound[o] + margin) ** 2, dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests
@@ -274,7 +268,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
         best, dmin2, n_buckets, n_tests = _scan_bucket(
             query, pu, pv, h, has_sketch, low, high, n_axes + 1, bucket,
             cell_begin[ci * n + cj], cell_end[ci * n + cj], entries, entry_aux, bucket_h,
-            boxes, bucket_mean, bucket_radius,
+            box_low, box_high, bucket_mean, bucket_radius,
             ci * delta - half_width, cj * delta - half_width, delta, best, dmin2,
             n_buckets, n_tests)
     if fine_is_all:  # phase 1 covered the whole grid
@@ -286,6 +280,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     if not has_sketch:
         _query_sketch(query, r2, sketch, low, high)
     lanes = n_axes + 1
+    block_low, block_high = block_boxes
     bi = i // block
     bj = j // block
     for o in range(block_offsets.shape[0]):
@@ -300,7 +295,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
         stop = block_start[kb + 1]
         if start == stop:
             continue
-        if _prunable(_box_gap2(low, high, block_boxes, kb, lanes), dmin2):
+        if _prunable(_sketch_gap2(low, high, block_low, block_high, kb, lanes), dmin2):
             continue
         n_buckets += 1
         for e in range(start, stop):
@@ -308,8 +303,8 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
             rj = max(abs(entry_cell[e, 1] - j) - 1, 0)
             if ri * ri + rj * rj <= fine_dd2_max:
                 continue  # phase 1 tested it
-            if entry_bound and _prunable(_point_gap2(low, high, entry_sketch, e, lanes),
-                                         dmin2):
+            if entry_bound and _prunable(
+                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e, lanes), dmin2):
                 continue
             best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
     return best, dmin2, n_buckets, n_tests

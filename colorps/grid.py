@@ -126,18 +126,27 @@ def _sketches(principal: np.ndarray, center: np.ndarray,
     points = coords.astype(np.float32)
     # Stored sketches are off by float32 rounding, and residuals by the float64
     # rounding of their cancellation; queries' intervals are widened by this.
-    point_slack = 4.0 * 2.0 ** -24 * (1.0 + norms.max()) + 1e-7 * (1.0 + norms.max())
+    point_slack = (4.0 * _grid_kernels._U32 + 1e-7) * (1.0 + norms.max())
     sketch = (axes32, offset, n_axes, float(np.linalg.norm(center)), 1.0 / sigma ** 2,
               float(point_slack))
     return sketch, points
 
 
-def _boxes(points: np.ndarray, first: np.ndarray) -> np.ndarray:
-    """(len(first), 2, lanes) low and high corners of consecutive groups of points."""
-    boxes = np.empty((first.size, 2, points.shape[1]), dtype=np.float32)
-    boxes[:, 0] = np.minimum.reduceat(points, first, axis=0)
-    boxes[:, 1] = np.maximum.reduceat(points, first, axis=0)
-    return boxes
+def _boxes(points: np.ndarray, first: np.ndarray,
+           groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Low and high corners, (G, lanes) each, of consecutive groups of points.
+
+    Groups start at ``first``. With ``groups`` (a mask over G >= len(first)
+    groups) the boxes land in the masked rows; the others are empty (+inf, -inf).
+    """
+    low = np.minimum.reduceat(points, first, axis=0)
+    high = np.maximum.reduceat(points, first, axis=0)
+    if groups is None:
+        return low, high
+    all_low = np.full((groups.size, points.shape[1]), np.inf, dtype=np.float32)
+    all_high = np.full((groups.size, points.shape[1]), -np.inf, dtype=np.float32)
+    all_low[groups], all_high[groups] = low, high
+    return all_low, all_high
 
 
 class BucketGrid:
@@ -278,8 +287,8 @@ class BucketGrid:
 
         entries = np.ascontiguousarray(table[order])
         aux = np.stack([pu[order], pv[order], h[order]], axis=1)
-        bucket_h = np.stack([np.minimum.reduceat(h[order], first),
-                             np.maximum.reduceat(h[order], first)], axis=1)
+        bucket_h = np.stack([np.minimum.reduceat(aux[:, 2], first),
+                             np.maximum.reduceat(aux[:, 2], first)], axis=1)
         sorted64 = t64[order]
         bucket_mean = (np.add.reduceat(sorted64, first, axis=0) / counts[:, None])
         bucket_mean = bucket_mean.astype(np.float32)
@@ -289,10 +298,8 @@ class BucketGrid:
         sketch, entry_sketch = _sketches(principal, center, sorted64)
         bucket_boxes = _boxes(entry_sketch, first)
         # Empty blocks are never tested; give them an empty box all the same.
-        block_boxes = np.empty((n_blocks * n_blocks, 2, entry_sketch.shape[1]), np.float32)
-        block_boxes[:, 0], block_boxes[:, 1] = np.inf, -np.inf
         filled = block_start[:-1] < block_start[1:]
-        block_boxes[filled] = _boxes(entry_sketch, block_start[:-1][filled])
+        block_boxes = _boxes(entry_sketch, block_start[:-1][filled], filled)
 
         offsets, dd2 = _scan_order(n)
         fine_dd2_max = fine_radius * fine_radius
@@ -322,7 +329,7 @@ class BucketGrid:
             np.ascontiguousarray(aux), entry_sketch,
             np.stack([ci[order], cj[order]], axis=1).astype(np.int64),
             cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
-            (np.ascontiguousarray(bucket_h), bucket_boxes,
+            (np.ascontiguousarray(bucket_h), *bucket_boxes,
              np.ascontiguousarray(bucket_mean), bucket_radius),
             sketch, np.ascontiguousarray(fine_offsets),
             delta * np.sqrt(fine_dd2.astype(np.float64)), n_fine == offsets.shape[0],

@@ -90,7 +90,7 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
         r2 = float(((q.astype(np.float64) - grid.center) ** 2).sum())
         kernels._query_sketch(q, r2, sketch, low, high)
         true2 = ((entries - q.astype(np.float64)) ** 2).sum(axis=1)
-        bound2 = np.array([kernels._point_gap2(low, high, points, e, lanes)
+        bound2 = np.array([kernels._sketch_gap2(low, high, points, points, e, lanes)
                            for e in range(entries.shape[0])])
         assert np.all(bound2 <= true2 * (1 + 1e-5) + 1e-12), (bound2 / true2).max()
         ratios.append(np.median(bound2 / true2))
