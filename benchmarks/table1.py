@@ -63,12 +63,11 @@ def light_colours(m: int) -> np.ndarray:
 
 
 def make_case(theta: int, m: int, colour: bool, sigma: float, outliers: float,
-              seed: int = 0, order: str = "tiles") -> tuple[np.ndarray, np.ndarray]:
-    """Gauge table and scene queries for one configuration.
+              seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauge table, scene queries row by row, and the pipeline's order of them.
 
-    ``order="tiles"`` gives the queries in the order colorps's pipeline looks
-    them up (32 x 32 pixel tiles, see ``colorps.reconstruct._tile_order``);
-    ``"raster"`` row by row over the image.
+    ``queries[tiles]`` are the same queries in the order colorps's pipeline
+    looks them up (32 x 32 pixel tiles, see ``colorps.reconstruct._tile_order``).
     """
     from colorps import compute_signatures, synth
     from colorps.reconstruct import _tile_order
@@ -82,14 +81,17 @@ def make_case(theta: int, m: int, colour: bool, sigma: float, outliers: float,
     stack = synth.render(scene, lights, noise=sigma, seed=seed)
     ssig = compute_signatures(stack, "colour")
     pixels = ssig.valid & scene.mask
-    queries = ssig.signatures[_tile_order(pixels) if order == "tiles" else pixels]
+    queries = ssig.signatures[pixels]
+    raster_row = np.full(pixels.shape, -1, dtype=np.int64)
+    raster_row[pixels] = np.arange(queries.shape[0])
+    tiles = raster_row[_tile_order(pixels)]
     if outliers > 0:
         rng = np.random.default_rng(seed + 1)
         pick = rng.random(queries.shape[0]) < outliers
         junk = np.abs(rng.normal(size=(int(pick.sum()), bands, m)))
         junk /= np.linalg.norm(junk, axis=-1, keepdims=True)
         queries[pick] = junk.reshape(-1, bands * m)
-    return np.ascontiguousarray(table), np.ascontiguousarray(queries)
+    return np.ascontiguousarray(table), np.ascontiguousarray(queries), tiles
 
 
 def brute_force_f64(table: np.ndarray, queries: np.ndarray) -> np.ndarray:
@@ -264,11 +266,11 @@ def main() -> None:
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for theta, m, colour, sigma, outliers, sizes in cases:
-            table, raster = make_case(theta, m, colour, sigma, outliers, order="raster")
+            table, raster, tiles = make_case(theta, m, colour, sigma, outliers)
             data = os.path.join(tmp, "case.npz")
             np.savez(data, table=table, queries=raster)
             grid_raster = run_worker("grid", data, 202, 2, args.peer_seconds)
-            table, queries = make_case(theta, m, colour, sigma, outliers)
+            queries = np.ascontiguousarray(raster[tiles])
             np.savez(data, table=table, queries=queries)
             row = dict(theta=theta, m=m, mode="colour" if colour else "mono",
                        D=table.shape[1], T=table.shape[0], Q=queries.shape[0],
