@@ -69,6 +69,28 @@ def test_far_queries_exact(m, colour, rng):
     assert stats.tests < 0.3 * table.shape[0]
 
 
+@pytest.mark.parametrize("m, theta", [(5, 10), (30, 10), (30, 45)])
+def test_answers_do_not_depend_on_query_order(m, theta, rng):
+    """A lookup adapts its work to the query before it (a neighbouring pixel
+    in the pipeline's order): it computes the sketch at once when that query
+    needed it. Answers must stay exact in any order, and equal to the answer
+    of each query looked up alone."""
+    table = sphere_table(m, theta, True)
+    junk = np.abs(rng.normal(size=(200, 3, m)))
+    junk /= np.linalg.norm(junk, axis=-1, keepdims=True)
+    queries = np.concatenate([noisy(table, rng, 600, 0.005), noisy(table, rng, 300, 0.05),
+                              junk.reshape(200, -1).astype(np.float32), table[:100]])
+    grid = BucketGrid(table)
+    alone = np.array([grid.query(q[None])[1][0] for q in queries[::11]])
+    for order in (np.arange(len(queries)), np.arange(len(queries))[::-1],
+                  rng.permutation(len(queries))):
+        rows, dist = grid.query(queries[order])
+        assert_exact(table, queries[order], rows, dist)
+        back = np.empty_like(dist)
+        back[order] = dist
+        np.testing.assert_array_equal(back[::11], alone)
+
+
 @pytest.mark.parametrize("dims, offset", [(3, 0.0), (12, 0.0), (90, 0.0), (90, 50.0)])
 def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
     """The sketch test never exceeds the true squared distance (float64), even
@@ -88,7 +110,8 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
     ratios = []
     for q in queries:
         r2 = float(((q.astype(np.float64) - grid.center) ** 2).sum())
-        kernels._query_sketch(q, r2, sketch, low, high)
+        q_norm2 = float((q.astype(np.float64) ** 2).sum())
+        kernels._query_sketch(q, r2, q_norm2, sketch, low, high)
         true2 = ((entries - q.astype(np.float64)) ** 2).sum(axis=1)
         bound2 = np.array([kernels._sketch_gap2(low, high, points, points, e, lanes)
                            for e in range(entries.shape[0])])
