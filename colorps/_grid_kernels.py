@@ -117,6 +117,8 @@ def _interval_gap(x, lo, hi):
 
 
 _AXES_PER_PASS = 5
+# The sketch's axis rows (SKETCH_LANES - 1 of them) are read five at a time.
+assert (SKETCH_LANES - 1) % _AXES_PER_PASS == 0
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
