@@ -110,6 +110,12 @@ def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block, cell_begin,
 
 
 @njit(cache=True, inline="always")
+def _dd2(dr, ds):
+    """Squared eq. 15 norm ||(r, s)||_dd^2 of a cell displacement, in cells."""
+    return max(abs(dr) - 1, 0) ** 2 + max(abs(ds) - 1, 0) ** 2
+
+
+@njit(cache=True, inline="always")
 def _interval_gap(x, lo, hi):
     """Distance from x to the interval [lo, hi] (0 inside).
 
@@ -126,7 +132,8 @@ def _interval_gap(x, lo, hi):
 @njit(cache=True, inline="always")
 def _interval_gap_free(x, lo, hi):
     """``_interval_gap`` without branches, for the bucket tests (D > 8), whose
-    outcome is unpredictable (colour m = 3, sigma = 0.02: 7 % faster)."""
+    outcome is unpredictable (D = 90 theta 45: 0.87x in one comparison; other
+    cases within this machine's noise)."""
     return max(lo - x, x - hi, 0.0)
 
 
@@ -348,7 +355,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
             # the fine scan would visit more than about pi _SWITCH_CELLS^2
             # cells: the coarse level is cheaper. Every cell with a smaller
             # dd2 than this one has been scanned; phase 2 skips only those.
-            covered_dd2 = max(abs(dr) - 1, 0) ** 2 + max(abs(ds) - 1, 0) ** 2
+            covered_dd2 = _dd2(dr, ds)
             break
         ci = i + dr
         cj = j + ds
@@ -397,9 +404,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
             continue
         n_buckets += 1
         for e in range(start, stop):
-            ri = max(abs(entry_cell[e, 0] - i) - 1, 0)
-            rj = max(abs(entry_cell[e, 1] - j) - 1, 0)
-            if ri * ri + rj * rj < covered_dd2:
+            if _dd2(entry_cell[e, 0] - i, entry_cell[e, 1] - j) < covered_dd2:
                 continue  # phase 1 tested it
             if entry_bound and _prunable(
                     _sketch_gap2(low, high, entry_sketch, entry_sketch, e, lanes), dmin2):

@@ -190,10 +190,12 @@ class BucketGrid:
       axes and the residual beyond them (float32). Buckets and blocks keep the
       box of their entries' sketches, a lower bound that stays tight where the
       manifold curves away from the plane. A lookup computes its query's
-      sketch only once it has spent about as much on full distances;
-    * once the scan has passed a few cells without terminating, it continues at
-      a coarse level of blocks of cells with sketch boxes, so a query at
-      distance r from the table no longer costs (r / delta)^2 cells.
+      sketch before it would spend about as much on full distances, or at once
+      when the previous query (a neighbouring pixel) needed it;
+    * once the scan has passed a few cells without terminating, or (D > 8) its
+      best entry is still several cells away, it continues at a coarse level of
+      blocks of cells with sketch boxes, so a query at distance r from the
+      table no longer costs (r / delta)^2 cells.
 
     Distances are computed in float32, projections and bounds in float64 or in
     float32 with rounding-error intervals; a pruning test keeps a relative
