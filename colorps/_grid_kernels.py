@@ -31,6 +31,8 @@ the plane):
 import numpy as np
 from numba import njit, prange
 
+from ._simd import LANES, box_gap, squared_distance
+
 _REL_SLACK = 1e-4
 _ABS_SLACK = 1e-9
 # Bucket truncation (eq. 12) costs one full distance; it pays only when the bucket
@@ -51,10 +53,12 @@ _SWITCH_AFTER = 25
 _FASTMATH = {"reassoc", "contract"}
 # Up to this signature dimension a full distance costs no more than any bucket
 # test, so phase 1 tests whole runs of cells without looking at their buckets.
+# Above it, entries (and queries, in a scratch row) are zero-padded to whole
+# vectors of _simd.LANES, whose distances _simd computes in one pass.
 RUN_SCAN_DIMS = 8
-# Lanes of a sketch: principal-axis coordinates, then the residual (one AVX-512
-# register of float32). Unused axis lanes are zero in queries and boxes alike.
-SKETCH_LANES = 16
+# Lanes of a sketch: principal-axis coordinates, then the residual (one vector
+# of _simd.LANES float32). Unused axis lanes are zero in queries and boxes alike.
+SKETCH_LANES = LANES
 _U32 = 2.0 ** -24  # unit roundoff of float32
 
 
@@ -65,12 +69,21 @@ def _prunable(bound2, dmin2):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _dist2(query, table, row):
+def _dist2_short(query, table, row):
+    """float32 |query - table[row]|^2 for rows of up to RUN_SCAN_DIMS values."""
     acc = np.float32(0.0)
-    for k in range(query.shape[0]):
+    for k in range(table.shape[1]):
         t = query[k] - table[row, k]
         acc += t * t
     return acc
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _dist2(query, table, row):
+    """float32 |query - table[row]|^2 over the table's (padded) width."""
+    if table.shape[1] > RUN_SCAN_DIMS:  # zero-padded to whole vectors
+        return squared_distance(query, table, row)
+    return _dist2_short(query, table, row)
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
@@ -103,8 +116,12 @@ def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block_last, cell_b
         last = cell_end[ci * n + stop]
         if first < last:
             n_buckets += 1
-        for e in range(first, last):
-            best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
+        for e in range(first, last):  # runs are used up to RUN_SCAN_DIMS only
+            d2 = np.float64(_dist2_short(query, entries, e))
+            if d2 < dmin2:
+                best = e
+                dmin2 = d2
+        n_tests += last - first
         c0 = stop + 1
     return best, dmin2, n_buckets, n_tests
 
@@ -154,7 +171,7 @@ def _dots5(query, axes, a0):
     t2 = np.float32(0.0)
     t3 = np.float32(0.0)
     t4 = np.float32(0.0)
-    for k in range(query.shape[0]):
+    for k in range(axes.shape[1]):
         x = query[k]
         t0 += x * axes[a0, k]
         t1 += x * axes[a0 + 1, k]
@@ -182,7 +199,7 @@ def _query_sketch(query, r2, q_norm2, sketch, low, high):
     sketches (and boxes of them) can be compared as they are.
     """
     axes, offset, n_axes, center_norm, inv_sigma2, point_slack = sketch
-    tau = (1.25 * (query.shape[0] + 8) * _U32 * (np.sqrt(q_norm2) + center_norm)
+    tau = (1.25 * (axes.shape[1] + 8) * _U32 * (np.sqrt(q_norm2) + center_norm)
            + point_slack)
     res2 = r2
     err2 = 1e-12 * r2
@@ -201,17 +218,14 @@ def _query_sketch(query, r2, q_norm2, sketch, low, high):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _sketch_gap2(low, high, box_low, box_high, row, lanes):
+def _sketch_gap2(low, high, box_low, box_high, row):
     """Squared distance between a query's sketch intervals and box ``row``.
 
     A box is one bucket's or block's (``box_low``, ``box_high`` corners), or an
-    entry's own sketch (the same array as both corners).
+    entry's own sketch (the same array as both corners). All ``SKETCH_LANES``
+    lanes are compared: unused ones are 0 in both.
     """
-    acc = np.float32(0.0)
-    for a in range(lanes):
-        g = max(box_low[row, a] - high[a], low[a] - box_high[row, a], np.float32(0.0))
-        acc += g * g
-    return np.float64(acc)
+    return np.float64(box_gap(low, high, box_low, box_high, row))
 
 
 @njit(cache=True, inline="always")
@@ -224,14 +238,14 @@ def _aux_gap2(pu, pv, h, entry_aux, e):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, stop,
+def _scan_bucket(query, pu, pv, h, has_sketch, low, high, bucket, start, stop,
                  entries, entry_aux, entry_sketch, entry_bound, bucket_h, box_low,
                  box_high, bucket_mean, bucket_radius, box_u0, box_v0, delta, best,
                  dmin2, n_buckets, n_tests):
     """Test one non-empty bucket (entries start .. stop - 1); update (best, dmin2, b, d).
 
     (pu, pv, h) is the query's (u, v, h); with ``has_sketch`` its sketch
-    intervals (``low``, ``high``, ``lanes`` used) are known.
+    intervals (``low``, ``high``) are known.
 
     * With the sketch: the bucket's sketch box, then (``entry_bound``, buckets
       of several entries) each entry's sketch. The sketch box contains the
@@ -243,7 +257,7 @@ def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, 
       per-entry (u, v, h) bound.
     """
     if has_sketch:
-        if _prunable(_sketch_gap2(low, high, box_low, box_high, bucket, lanes), dmin2):
+        if _prunable(_sketch_gap2(low, high, box_low, box_high, bucket), dmin2):
             return best, dmin2, n_buckets, n_tests
         n_buckets += 1
         if stop - start == 1:  # the bucket's box is its entry's sketch
@@ -257,7 +271,7 @@ def _scan_bucket(query, pu, pv, h, has_sketch, low, high, lanes, bucket, start, 
             if aux_first and _prunable(_aux_gap2(pu, pv, h, entry_aux, e), dmin2):
                 continue
             if entry_bound and _prunable(
-                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e, lanes), dmin2):
+                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e), dmin2):
                 continue
             best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
         return best, dmin2, n_buckets, n_tests
@@ -302,7 +316,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     pv = 0.0
     r2 = 0.0
     q_norm2 = 0.0
-    for k in range(query.shape[0]):
+    for k in range(center.shape[0]):
         x = np.float64(query[k])
         t = x - center[k]
         pu += t * axes[0, k]
@@ -370,7 +384,7 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
             _query_sketch(query, r2, q_norm2, sketch, low, high)
             has_sketch = True
         best, dmin2, n_buckets, n_tests = _scan_bucket(
-            query, pu, pv, h, has_sketch, low, high, n_axes + 1, bucket,
+            query, pu, pv, h, has_sketch, low, high, bucket,
             start, stop, entries, entry_aux, entry_sketch, entry_bound, bucket_h,
             box_low, box_high, bucket_mean, bucket_radius,
             ci * delta - half_width, cj * delta - half_width, delta, best, dmin2,
@@ -384,7 +398,6 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
     if not has_sketch:
         _query_sketch(query, r2, q_norm2, sketch, low, high)
         has_sketch = True
-    lanes = n_axes + 1
     block_low, block_high = block_boxes
     bi = i // block
     bj = j // block
@@ -400,14 +413,14 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
         stop = block_start[kb + 1]
         if start == stop:
             continue
-        if _prunable(_sketch_gap2(low, high, block_low, block_high, kb, lanes), dmin2):
+        if _prunable(_sketch_gap2(low, high, block_low, block_high, kb), dmin2):
             continue
         n_buckets += 1
         for e in range(start, stop):
             if _dd2(entry_cell[e, 0] - i, entry_cell[e, 1] - j) < covered_dd2:
                 continue  # phase 1 tested it
             if entry_bound and _prunable(
-                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e, lanes), dmin2):
+                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e), dmin2):
                 continue
             best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
     return best, dmin2, n_buckets, n_tests, has_sketch
@@ -424,18 +437,24 @@ def lookup(queries, center, axes, half_width, delta, n, entries, entry_aux, entr
            out_dist, out_buckets, out_tests):
     """Nearest table row for every query (``prange`` over chunks of queries).
 
-    Each chunk allocates its scratch space (a query's sketch intervals) once,
-    outside the per-query loop.
+    Each chunk allocates its scratch space (a query's sketch intervals, and a
+    zero-padded copy of the query when entries are padded) once, outside the
+    per-query loop.
     """
     n_queries = queries.shape[0]
     n_chunks = (n_queries + _CHUNK - 1) // _CHUNK
     for chunk in prange(n_chunks):
         low = np.zeros(SKETCH_LANES, dtype=np.float32)
         high = np.zeros(SKETCH_LANES, dtype=np.float32)
+        padded = np.zeros(entries.shape[1], dtype=np.float32)  # the padding stays 0
         eager = False
         for q in range(chunk * _CHUNK, min((chunk + 1) * _CHUNK, n_queries)):
+            query = queries[q]
+            if padded.shape[0] > queries.shape[1]:
+                padded[:queries.shape[1]] = query
+                query = padded
             best, dmin2, nb, nd, sketched = _lookup_one(
-                queries[q], low, high, center, axes, half_width, delta, n, entries,
+                query, low, high, center, axes, half_width, delta, n, entries,
                 entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
                 buckets, sketch, scan_offsets, scan_bound, fine_is_all, fine_dd2_max,
                 block, n_blocks, block_start, block_boxes, block_offsets, block_bound2,

@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 
-from . import _grid_kernels
+from . import _grid_kernels, _simd
 from ._checks import as_float32_2d, resolve_threads
 from .errors import InputError
 
@@ -95,6 +95,18 @@ def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndar
         bounds.extend([dd2[start]] * len(pieces))
         start = stop
     return np.array(runs, dtype=np.int64).reshape(-1, 3), np.array(bounds, dtype=np.int64)
+
+
+def _padded(rows: np.ndarray) -> np.ndarray:
+    """Rows as the kernels read them: C-contiguous float32, and above
+    ``RUN_SCAN_DIMS`` zero-padded to whole vectors of ``_simd.LANES``."""
+    dims = rows.shape[1]
+    width = dims
+    if dims > _grid_kernels.RUN_SCAN_DIMS:
+        width = -(-dims // _simd.LANES) * _simd.LANES
+    out = np.zeros((rows.shape[0], width), dtype=np.float32)
+    out[:, :dims] = rows
+    return out
 
 
 def _sketches(principal: np.ndarray, center: np.ndarray,
@@ -287,7 +299,7 @@ class BucketGrid:
         bucket_of_entry = np.repeat(np.arange(n_buckets), counts)
         block_start = np.searchsorted(block_id[order], np.arange(n_blocks * n_blocks + 1))
 
-        entries = np.ascontiguousarray(table[order])
+        entries = _padded(table[order])
         aux = np.stack([pu[order], pv[order], h[order]], axis=1)
         bucket_h = np.stack([np.minimum.reduceat(aux[:, 2], first),
                              np.maximum.reduceat(aux[:, 2], first)], axis=1)
@@ -332,7 +344,7 @@ class BucketGrid:
             np.stack([ci[order], cj[order]], axis=1).astype(np.int64),
             cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
             (np.ascontiguousarray(bucket_h), *bucket_boxes,
-             np.ascontiguousarray(bucket_mean), bucket_radius),
+             _padded(bucket_mean), bucket_radius),
             sketch, np.ascontiguousarray(fine_offsets),
             delta * np.sqrt(fine_dd2.astype(np.float64)), n_fine == offsets.shape[0],
             fine_dd2_max, block,

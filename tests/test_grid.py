@@ -104,7 +104,6 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
     grid = BucketGrid(table)
     sketch, points = grid._sketch, grid._entry_sketch
     entries = table[grid._entry_index].astype(np.float64)  # storage order
-    lanes = sketch[2] + 1
     low = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
     high = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
     ratios = []
@@ -113,7 +112,7 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
         q_norm2 = float((q.astype(np.float64) ** 2).sum())
         kernels._query_sketch(q, r2, q_norm2, sketch, low, high)
         true2 = ((entries - q.astype(np.float64)) ** 2).sum(axis=1)
-        bound2 = np.array([kernels._sketch_gap2(low, high, points, points, e, lanes)
+        bound2 = np.array([kernels._sketch_gap2(low, high, points, points, e)
                            for e in range(entries.shape[0])])
         assert np.all(bound2 <= true2 * (1 + 1e-5) + 1e-12), (bound2 / true2).max()
         ratios.append(np.median(bound2 / true2))
