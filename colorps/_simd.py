@@ -43,7 +43,8 @@ def _sum_lanes(builder, vector):
     reduce_type = ir.FunctionType(ir.FloatType(), [ir.FloatType(), _VECTOR])
     reduce = cgutils.get_or_insert_function(builder.module, reduce_type,
                                             "llvm.vector.reduce.fadd.v16f32")
-    return builder.call(reduce, [ir.Constant(ir.FloatType(), 0.0), vector],
+    # -0.0 is the identity of fadd: the start value costs no addition.
+    return builder.call(reduce, [ir.Constant(ir.FloatType(), -0.0), vector],
                         fastmath=_FLAGS)
 
 
