@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 
-from . import _grid_kernels, _simd
+from . import _grid_kernels
 from ._checks import as_float32_2d, resolve_threads
 from .errors import InputError
 
@@ -99,11 +99,11 @@ def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 def _padded(rows: np.ndarray) -> np.ndarray:
     """Rows as the kernels read them: C-contiguous float32, and above
-    ``RUN_SCAN_DIMS`` zero-padded to whole vectors of ``_simd.LANES``."""
+    ``RUN_SCAN_DIMS`` zero-padded to whole vectors of ``_grid_kernels.LANES``."""
     dims = rows.shape[1]
     width = dims
     if dims > _grid_kernels.RUN_SCAN_DIMS:
-        width = -(-dims // _simd.LANES) * _simd.LANES
+        width = -(-dims // _grid_kernels.LANES) * _grid_kernels.LANES
     out = np.zeros((rows.shape[0], width), dtype=np.float32)
     out[:, :dims] = rows
     return out

@@ -1,25 +1,25 @@
-"""The 16-lane kernels against numpy in float64."""
+"""The 16-lane vector intrinsics of the grid kernels against numpy in float64."""
 
 import numpy as np
 import pytest
 from numba import njit
 
-from colorps import _simd
+from colorps import _grid_kernels as kernels
 
 
-@njit(cache=True)
+@njit
 def _distances(query, table):
     out = np.empty(table.shape[0], dtype=np.float32)
     for row in range(table.shape[0]):
-        out[row] = _simd.squared_distance(query, table, row)
+        out[row] = kernels.squared_distance(query, table, row)
     return out
 
 
-@njit(cache=True)
+@njit
 def _gaps(low, high, box_low, box_high):
     out = np.empty(box_low.shape[0], dtype=np.float32)
     for row in range(box_low.shape[0]):
-        out[row] = _simd.box_gap(low, high, box_low, box_high, row)
+        out[row] = kernels.box_gap(low, high, box_low, box_high, row)
     return out
 
 
@@ -31,11 +31,11 @@ def _pad(rows, width):
 
 @pytest.mark.parametrize("dims", [1, 9, 16, 17, 90, 250])
 def test_squared_distance_matches_numpy(dims, rng):
-    width = -(-dims // _simd.LANES) * _simd.LANES
+    width = -(-dims // kernels.LANES) * kernels.LANES
     table = rng.normal(size=(300, dims)).astype(np.float32)
     query = rng.normal(size=dims).astype(np.float32)
     # A longer query buffer is allowed: only the table's width is read.
-    buffer = np.zeros(width + _simd.LANES, dtype=np.float32)
+    buffer = np.zeros(width + kernels.LANES, dtype=np.float32)
     buffer[:dims] = query
     got = _distances(buffer, _pad(table, width))
     want = ((table.astype(np.float64) - query.astype(np.float64)) ** 2).sum(axis=1)
@@ -46,7 +46,7 @@ def test_squared_distance_matches_numpy(dims, rng):
 
 
 def test_box_gap_matches_numpy(rng):
-    lanes = _simd.LANES
+    lanes = kernels.LANES
     centre = rng.normal(size=lanes).astype(np.float32)
     low = centre - np.float32(0.1)
     high = centre + np.float32(0.1)
