@@ -3,7 +3,7 @@
 Everything here is exact nearest-neighbour search: every pruning test compares
 a *lower bound* of a squared distance with the best squared distance found so
 far, and prunes only when the bound exceeds it by a safety margin larger than
-the rounding error of the float32 distances (``_REL_SLACK``, ``_ABS_SLACK``).
+the rounding error of the float32 distances (``REL_SLACK``, ``ABS_SLACK``).
 
 Lower bounds used (q = query, g = table entry, b = table centroid, P = the
 projection onto the PCA plane, h(x) = |x - b - P(x - b)| the distance of x from
@@ -26,13 +26,100 @@ the plane):
   contain the exact values (``_query_sketch``), so every test stays a true
   lower bound. It stays tight where the manifold curves away from the plane,
   and for queries far from the table or with many near-ties.
+
+The grid's data reach the kernels as one :class:`GridData`, a named tuple of
+named tuples (numba compiles attribute access on them to plain loads), built by
+:mod:`colorps.grid`. The tuning constants of the kernels are in this file,
+because numba's cache only notices changes to the file that defines a cached
+function; the measurements behind them are in docs/benchmarks.md.
 """
+
+from collections import namedtuple
 
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+# ---------------------------------------------------------------- tuning
+#: Relative and absolute margins of every pruning test (float32 rounding of
+#: distances is far below them).
+REL_SLACK = 1e-4
+ABS_SLACK = 1e-9
+#: Bucket truncation (eq. 12) costs one full distance; it pays only when the
+#: bucket holds more entries than that.
+MIN_ENTRIES_FOR_BALL_TEST = 2
+#: Above this many entries a bucket's (u, v, h) bounds per entry pay before its
+#: sketch bounds (measured: 1.5x faster with N = 1 at D = 90, 3 % slower at
+#: N = 202 where buckets hold up to 16).
+LARGE_BUCKET = 32
+#: Above D = 8 the fine scan hands over to the coarse level early when, after
+#: the first SWITCH_AFTER cells, the best entry is still more than SWITCH_CELLS
+#: cells away (sigma = 0.02: 0.55-0.73x; sigma = 0.005 unchanged, measured).
+SWITCH_CELLS = 4.0
+SWITCH_AFTER = 25
+#: Reassociation lets LLVM vectorise the dot products; its rounding changes are
+#: orders of magnitude below the pruning margins. No flags that assume finite
+#: values: inputs are checked, but inf is used as "no entry yet".
+FASTMATH = {"reassoc", "contract"}
+#: Up to this signature dimension a full distance costs no more than any bucket
+#: test, so phase 1 tests whole runs of cells without looking at their buckets.
+#: Above it, entries (and queries, in a scratch row) are zero-padded to whole
+#: vectors of LANES, whose distances squared_distance computes in one pass.
+RUN_SCAN_DIMS = 8
+#: float32 values per vector of the intrinsics below.
+LANES = 16
+#: Lanes of a sketch: principal-axis coordinates, then the residual (one vector
+#: of LANES float32). Unused axis lanes are zero in queries and boxes alike.
+SKETCH_LANES = LANES
+#: The query's sketch reads the axis rows this many at a time (independent
+#: sums hide each other's latency: 30 % faster than one at a time at D = 90).
+AXES_PER_PASS = 5
+assert (SKETCH_LANES - 1) % AXES_PER_PASS == 0
+#: Queries per unit of work handed to a thread (each allocates its scratch once).
+QUERY_CHUNK = 256
+U32 = 2.0 ** -24  # unit roundoff of float32
+
+# ---------------------------------------------------------------- data layout
+#: The PCA plane and the grid on it. center (D,) and axes (2, D) float64 (the
+#: table's centroid b and two leading principal axes); half_width R and cell
+#: side delta (signature units); n cells per side.
+Plane = namedtuple("Plane", "center axes half_width delta n")
+#: Table entries in storage order (by block, then cell, row-major). values
+#: (K, W) float32, zero-padded to W >= D; aux (K, 3) float64 (u, v, h); sketch
+#: (K, SKETCH_LANES) float32; cell (K, 2) int64 (row i, column j of its cell).
+Entries = namedtuple("Entries", "values aux sketch cell")
+#: Per cell (flat index i n + j): bucket number (-1: empty) and the range
+#: begin .. end of its entries, int64.
+Cells = namedtuple("Cells", "bucket begin end")
+#: Per non-empty bucket: h_range (B, 2) float64 [h_min, h_max]; box_low,
+#: box_high (B, SKETCH_LANES) float32 sketch box; mean (B, W) float32 (padded
+#: like entries); radius (B,) float64 about that mean.
+Buckets = namedtuple("Buckets", "h_range box_low box_high mean radius")
+#: The sketch definition (see ``_query_sketch``): axes (SKETCH_LANES - 1, D)
+#: float32, offset (SKETCH_LANES - 1,) float32 = axes b, n_axes used, |b|,
+#: 1 / sigma^2, and point_slack (the stored sketches' largest rounding error).
+Sketch = namedtuple("Sketch", "axes offset n_axes center_norm inv_sigma2 point_slack")
+#: The coarse level: blocks of side x side cells, count per side; start
+#: (count^2 + 1,) int64 entry ranges; box_low, box_high sketch boxes; offsets
+#: (L, 2) int32 in eq. 15 order and bound2 (L,) their squared distance bounds.
+Blocks = namedtuple("Blocks", "side count start box_low box_high offsets bound2")
+#: How phase 1 scans: with use_runs, runs (R, 3) int64 (r, s0, s1) of cells of
+#: one row sharing a bound run_bound (R,), block_last (n,) the last column of
+#: each column's block; else offsets (L, 2) int32 cell by cell with bound (L,).
+#: fine_is_all: phase 1 reaches every cell; fine_dd2_max: its reach (cells^2);
+#: entry_bound: phase 2 bounds each entry by its sketch (D > SKETCH_LANES).
+ScanPlan = namedtuple("ScanPlan", "use_runs runs run_bound block_last offsets bound "
+                                  "fine_is_all fine_dd2_max entry_bound")
+#: Everything a lookup reads.
+GridData = namedtuple("GridData", "plane entries cells buckets sketch blocks plan")
+#: The state of one lookup: best entry so far (-1: none), its squared distance,
+#: buckets examined and full distances computed.
+Search = namedtuple("Search", "best dmin2 buckets tests")
+#: A query on the PCA plane: (u, v), its distance h from the plane, |q - b|^2
+#: and |q|^2 (float64).
+Position = namedtuple("Position", "u v h r2 norm2")
 
 # ---------------------------------------------------------------- 16-lane vectors
 # numba leaves the lane count of its loops to LLVM, which splits a loop with a
@@ -47,7 +134,6 @@ from numba.extending import intrinsic
 # this file because numba's cache only notices changes to the file that defines
 # a cached function.
 
-LANES = 16
 _VECTOR = ir.VectorType(ir.FloatType(), LANES)
 # As the kernels' fastmath: sums may be reassociated, never assumed finite.
 _FLAGS = ("reassoc", "contract")
@@ -148,42 +234,14 @@ def box_gap(typingctx, low, high, box_low, box_high, row):
     return types.float32(low, high, box_low, box_high, row), codegen
 
 
-_REL_SLACK = 1e-4
-_ABS_SLACK = 1e-9
-# Bucket truncation (eq. 12) costs one full distance; it pays only when the bucket
-# holds more entries than that.
-_MIN_ENTRIES_FOR_BALL_TEST = 2
-# Above this many entries a bucket's (u, v, h) bounds per entry pay before its
-# sketch bounds (measured: 1.5x faster with N = 1 at D = 90, 3 % slower at
-# N = 202 where buckets hold up to 16).
-_LARGE_BUCKET = 32
-# Above D = 8 the fine scan hands over to the coarse level early when, after the
-# first _SWITCH_AFTER cells, the best entry is still more than _SWITCH_CELLS
-# cells away (sigma = 0.02: 0.55-0.73x; sigma = 0.005 unchanged, measured).
-_SWITCH_CELLS = 4.0
-_SWITCH_AFTER = 25
-# Reassociation lets LLVM vectorise the dot products; its rounding changes are
-# orders of magnitude below the pruning margins above. No flags that assume
-# finite values: inputs are checked, but inf is used as "no entry yet".
-_FASTMATH = {"reassoc", "contract"}
-# Up to this signature dimension a full distance costs no more than any bucket
-# test, so phase 1 tests whole runs of cells without looking at their buckets.
-# Above it, entries (and queries, in a scratch row) are zero-padded to whole
-# vectors of LANES, whose distances squared_distance computes in one pass.
-RUN_SCAN_DIMS = 8
-# Lanes of a sketch: principal-axis coordinates, then the residual (one vector
-# of LANES float32). Unused axis lanes are zero in queries and boxes alike.
-SKETCH_LANES = LANES
-_U32 = 2.0 ** -24  # unit roundoff of float32
-
-
+# ---------------------------------------------------------------- bounds
 @njit(cache=True, inline="always")
 def _prunable(bound2, dmin2):
     """True when a lower bound ``bound2`` proves nothing can beat ``dmin2``."""
-    return bound2 > dmin2 * (1.0 + _REL_SLACK) + _ABS_SLACK
+    return bound2 > dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _dist2_short(query, table, row):
     """float32 |query - table[row]|^2 for rows of up to RUN_SCAN_DIMS values."""
     acc = np.float32(0.0)
@@ -193,7 +251,7 @@ def _dist2_short(query, table, row):
     return acc
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _dist2(query, table, row):
     """float32 |query - table[row]|^2 over the table's (padded) width."""
     if table.shape[1] > RUN_SCAN_DIMS:  # zero-padded to whole vectors
@@ -201,44 +259,13 @@ def _dist2(query, table, row):
     return _dist2_short(query, table, row)
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _test_entry(query, entries, e, best, dmin2, n_tests):
-    """Compute one full distance; keep the entry if it is the closest so far."""
-    d2 = np.float64(_dist2(query, entries, e))
-    if d2 < dmin2:
-        return e, d2, n_tests + 1
-    return best, dmin2, n_tests + 1
-
-
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _scan_run(query, pu, pv, i, j, run, n, delta, half_width, block_last, cell_begin,
-              cell_end, entries, best, dmin2, n_buckets, n_tests):
-    """Test every entry of one run of cells (row i + r, columns j + s0 .. j + s1)."""
-    ci = i + run[0]
-    if ci < 0 or ci >= n:
-        return best, dmin2, n_buckets, n_tests
-    c0 = max(j + run[1], 0)
-    c1 = min(j + run[2], n - 1)
-    if c0 > c1:
-        return best, dmin2, n_buckets, n_tests
-    gu = _interval_gap(pu, ci * delta - half_width, (ci + 1) * delta - half_width)
-    gv = _interval_gap(pv, c0 * delta - half_width, (c1 + 1) * delta - half_width)
-    if _prunable(gu * gu + gv * gv, dmin2):
-        return best, dmin2, n_buckets, n_tests
-    while c0 <= c1:  # cells of one row are contiguous within a block
-        stop = min(c1, block_last[c0])
-        first = cell_begin[ci * n + c0]
-        last = cell_end[ci * n + stop]
-        if first < last:
-            n_buckets += 1
-        for e in range(first, last):  # runs are used up to RUN_SCAN_DIMS only
-            d2 = np.float64(_dist2_short(query, entries, e))
-            if d2 < dmin2:
-                best = e
-                dmin2 = d2
-        n_tests += last - first
-        c0 = stop + 1
-    return best, dmin2, n_buckets, n_tests
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _test_entry(query, values, e, search):
+    """Compute one full distance; keep entry e if it is the closest so far."""
+    d2 = np.float64(_dist2(query, values, e))
+    if d2 < search.dmin2:
+        return Search(e, d2, search.buckets, search.tests + 1)
+    return Search(search.best, search.dmin2, search.buckets, search.tests + 1)
 
 
 @njit(cache=True, inline="always")
@@ -269,18 +296,9 @@ def _interval_gap_free(x, lo, hi):
     return max(lo - x, x - hi, 0.0)
 
 
-_AXES_PER_PASS = 5
-# The sketch's axis rows (SKETCH_LANES - 1 of them) are read five at a time.
-assert (SKETCH_LANES - 1) % _AXES_PER_PASS == 0
-
-
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _dots5(query, axes, a0):
-    """Dot products of ``query`` with axes a0 .. a0 + 4 in one pass (float32).
-
-    Five independent sums hide each other's addition latency: 30 % faster
-    than one axis per pass at D = 90.
-    """
+    """Dot products of ``query`` with axes a0 .. a0 + 4 in one pass (float32)."""
     t0 = np.float32(0.0)
     t1 = np.float32(0.0)
     t2 = np.float32(0.0)
@@ -296,15 +314,15 @@ def _dots5(query, axes, a0):
     return (t0, t1, t2, t3, t4)
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _query_sketch(query, r2, q_norm2, sketch, low, high):
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _query_sketch(query, position, sketch, low, high):
     """Intervals [low, high] (float32, per lane) that contain the query's exact sketch.
 
-    ``r2`` is |q - b|^2 and ``q_norm2`` is |q|^2 (float64). The axis
-    coordinates are float32 dot products: each is within ``tau`` of A(q - b),
-    from the standard bound D u sum_k |q_k A_ak| <= D u |q| on a float32 dot
-    product (|A_a| = 1, any order of summation), plus the rounding of the
-    stored offset A b and of the result. The residual is
+    ``position.r2`` is |q - b|^2 and ``position.norm2`` is |q|^2 (float64).
+    The axis coordinates are float32 dot products: each is within ``tau`` of
+    A(q - b), from the standard bound D u sum_k |q_k A_ak| <= D u |q| on a
+    float32 dot product (|A_a| = 1, any order of summation), plus the rounding
+    of the stored offset A b and of the result. The residual is
     r^2 = |q - b|^2 - |A(q - b)|^2 / sigma^2, with sigma >= 1 the largest
     singular value of the float32 axes: rounded axes are not exactly
     orthonormal, and this keeps r a seminorm, so the bound holds. Its
@@ -313,26 +331,29 @@ def _query_sketch(query, r2, q_norm2, sketch, low, high):
     between an entry's exact sketch and its stored float32 one, so stored
     sketches (and boxes of them) can be compared as they are.
     """
-    axes, offset, n_axes, center_norm, inv_sigma2, point_slack = sketch
-    tau = (1.25 * (axes.shape[1] + 8) * _U32 * (np.sqrt(q_norm2) + center_norm)
-           + point_slack)
-    res2 = r2
-    err2 = 1e-12 * r2
-    for a0 in range(0, n_axes, _AXES_PER_PASS):
+    axes = sketch.axes
+    n_axes = sketch.n_axes
+    tau = (1.25 * (axes.shape[1] + 8) * U32 * (np.sqrt(position.norm2) + sketch.center_norm)
+           + sketch.point_slack)
+    res2 = position.r2
+    err2 = 1e-12 * position.r2
+    for a0 in range(0, n_axes, AXES_PER_PASS):
         dots = _dots5(query, axes, a0)
-        for r in range(_AXES_PER_PASS):
+        for r in range(AXES_PER_PASS):
             a = a0 + r
             if a < n_axes:
-                x = np.float64(dots[r] - offset[a])
-                res2 -= inv_sigma2 * x * x
+                x = np.float64(dots[r] - sketch.offset[a])
+                res2 -= sketch.inv_sigma2 * x * x
                 err2 += tau * (2.0 * abs(x) + tau)
                 low[a] = x - tau
                 high[a] = x + tau
-    low[n_axes] = np.sqrt(max(res2 - err2, 0.0)) * (1.0 - 4.0 * _U32) - point_slack
-    high[n_axes] = np.sqrt(max(res2 + err2, 0.0)) * (1.0 + 4.0 * _U32) + point_slack
+    low[n_axes] = (np.sqrt(max(res2 - err2, 0.0)) * (1.0 - 4.0 * U32)
+                   - sketch.point_slack)
+    high[n_axes] = (np.sqrt(max(res2 + err2, 0.0)) * (1.0 + 4.0 * U32)
+                    + sketch.point_slack)
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _sketch_gap2(low, high, box_low, box_high, row):
     """Squared distance between a query's sketch intervals and box ``row``.
 
@@ -344,93 +365,122 @@ def _sketch_gap2(low, high, box_low, box_high, row):
 
 
 @njit(cache=True, inline="always")
-def _aux_gap2(pu, pv, h, entry_aux, e):
+def _aux_gap2(position, entry_aux, e):
     """Lower bound |P(q - g)|^2 + (h(q) - h(g))^2 from entry e's (u, v, h)."""
-    du = pu - entry_aux[e, 0]
-    dv = pv - entry_aux[e, 1]
-    dh = h - entry_aux[e, 2]
+    du = position.u - entry_aux[e, 0]
+    dv = position.v - entry_aux[e, 1]
+    dh = position.h - entry_aux[e, 2]
     return du * du + dv * dv + dh * dh
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _scan_bucket(query, pu, pv, h, has_sketch, low, high, bucket, start, stop,
-                 entries, entry_aux, entry_sketch, entry_bound, bucket_h, box_low,
-                 box_high, bucket_mean, bucket_radius, box_u0, box_v0, delta, best,
-                 dmin2, n_buckets, n_tests):
-    """Test one non-empty bucket (entries start .. stop - 1); update (best, dmin2, b, d).
+# ---------------------------------------------------------------- scans
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _scan_run(query, position, i, j, run, grid, search):
+    """Test every entry of one run of cells (row i + r, columns j + s0 .. j + s1)."""
+    plane, cells, values = grid.plane, grid.cells, grid.entries.values
+    n, delta, half_width = plane.n, plane.delta, plane.half_width
+    ci = i + run[0]
+    if ci < 0 or ci >= n:
+        return search
+    c0 = max(j + run[1], 0)
+    c1 = min(j + run[2], n - 1)
+    if c0 > c1:
+        return search
+    gu = _interval_gap(position.u, ci * delta - half_width, (ci + 1) * delta - half_width)
+    gv = _interval_gap(position.v, c0 * delta - half_width, (c1 + 1) * delta - half_width)
+    if _prunable(gu * gu + gv * gv, search.dmin2):
+        return search
+    best, dmin2, n_buckets, n_tests = search
+    block_last = grid.plan.block_last
+    while c0 <= c1:  # cells of one row are contiguous within a block
+        stop = min(c1, block_last[c0])
+        first = cells.begin[ci * n + c0]
+        last = cells.end[ci * n + stop]
+        if first < last:
+            n_buckets += 1
+        for e in range(first, last):  # runs are used up to RUN_SCAN_DIMS only
+            d2 = np.float64(_dist2_short(query, values, e))
+            if d2 < dmin2:
+                best = e
+                dmin2 = d2
+        n_tests += last - first
+        c0 = stop + 1
+    return Search(best, dmin2, n_buckets, n_tests)
 
-    (pu, pv, h) is the query's (u, v, h); with ``has_sketch`` its sketch
-    intervals (``low``, ``high``) are known.
 
-    * With the sketch: the bucket's sketch box, then (``entry_bound``, buckets
-      of several entries) each entry's sketch. The sketch box contains the
-      (u, v) rectangle test, which costs more than it saves here.
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _scan_bucket(query, position, sketched, low, high, ci, cj, bucket, start, stop, grid,
+                 search):
+    """Test ``bucket``, that of cell (ci, cj), entries start .. stop - 1; return
+    the updated search.
+
+    With ``sketched`` the query's sketch intervals (``low``, ``high``) are known.
+
+    * With the sketch: the bucket's sketch box, then (``plan.entry_bound``,
+      buckets of several entries) each entry's sketch. The sketch box contains
+      the (u, v) rectangle test, which costs more than it saves here.
     * Without, one entry: that entry's (u, v, h) bound, tighter than the
       bucket's and no dearer.
     * Without, several entries: the cell's rectangle and the bucket's interval
       of distances from the PCA plane, bucket truncation (eq. 12), then the
       per-entry (u, v, h) bound.
     """
-    if has_sketch:
-        if _prunable(_sketch_gap2(low, high, box_low, box_high, bucket), dmin2):
-            return best, dmin2, n_buckets, n_tests
-        n_buckets += 1
+    plane, entries, buckets = grid.plane, grid.entries, grid.buckets
+    entry_bound = grid.plan.entry_bound
+    if sketched:
+        if _prunable(_sketch_gap2(low, high, buckets.box_low, buckets.box_high, bucket),
+                     search.dmin2):
+            return search
+        search = Search(search.best, search.dmin2, search.buckets + 1, search.tests)
         if stop - start == 1:  # the bucket's box is its entry's sketch
-            best, dmin2, n_tests = _test_entry(query, entries, start, best, dmin2, n_tests)
-            return best, dmin2, n_buckets, n_tests
+            return _test_entry(query, entries.values, start, search)
         # Up to D = 16 the (u, v, h) bound is the only per-entry test worth its
         # cost. Above, the entry's sketch bound is, and the (u, v, h) bound
         # comes first only in large buckets (coarse grids), where it prunes most.
-        aux_first = not entry_bound or stop - start > _LARGE_BUCKET
+        aux_first = not entry_bound or stop - start > LARGE_BUCKET
         for e in range(start, stop):
-            if aux_first and _prunable(_aux_gap2(pu, pv, h, entry_aux, e), dmin2):
+            if aux_first and _prunable(_aux_gap2(position, entries.aux, e), search.dmin2):
                 continue
             if entry_bound and _prunable(
-                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e), dmin2):
+                    _sketch_gap2(low, high, entries.sketch, entries.sketch, e),
+                    search.dmin2):
                 continue
-            best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
-        return best, dmin2, n_buckets, n_tests
+            search = _test_entry(query, entries.values, e, search)
+        return search
     if stop - start == 1:  # the entry's own (u, v, h) bound is tighter
-        if _prunable(_aux_gap2(pu, pv, h, entry_aux, start), dmin2):
-            return best, dmin2, n_buckets, n_tests
-        best, dmin2, n_tests = _test_entry(query, entries, start, best, dmin2, n_tests)
-        return best, dmin2, n_buckets + 1, n_tests
-    gu = _interval_gap_free(pu, box_u0, box_u0 + delta)
-    gv = _interval_gap_free(pv, box_v0, box_v0 + delta)
-    gh = _interval_gap_free(h, bucket_h[bucket, 0], bucket_h[bucket, 1])
-    if _prunable(gu * gu + gv * gv + gh * gh, dmin2):
-        return best, dmin2, n_buckets, n_tests
-    n_buckets += 1
-    if stop - start >= _MIN_ENTRIES_FOR_BALL_TEST and dmin2 < np.inf:
-        centre_dist = np.sqrt(np.float64(_dist2(query, bucket_mean, bucket)))
-        gap = centre_dist - bucket_radius[bucket]
-        if gap > 0.0 and _prunable(gap * gap, dmin2):
-            return best, dmin2, n_buckets, n_tests
+        if _prunable(_aux_gap2(position, entries.aux, start), search.dmin2):
+            return search
+        search = _test_entry(query, entries.values, start, search)
+        return Search(search.best, search.dmin2, search.buckets + 1, search.tests)
+    box_u0 = ci * plane.delta - plane.half_width
+    box_v0 = cj * plane.delta - plane.half_width
+    gu = _interval_gap_free(position.u, box_u0, box_u0 + plane.delta)
+    gv = _interval_gap_free(position.v, box_v0, box_v0 + plane.delta)
+    gh = _interval_gap_free(position.h, buckets.h_range[bucket, 0],
+                            buckets.h_range[bucket, 1])
+    if _prunable(gu * gu + gv * gv + gh * gh, search.dmin2):
+        return search
+    search = Search(search.best, search.dmin2, search.buckets + 1, search.tests)
+    if stop - start >= MIN_ENTRIES_FOR_BALL_TEST and search.dmin2 < np.inf:
+        centre_dist = np.sqrt(np.float64(_dist2(query, buckets.mean, bucket)))
+        gap = centre_dist - buckets.radius[bucket]
+        if gap > 0.0 and _prunable(gap * gap, search.dmin2):
+            return search
     for e in range(start, stop):
-        if _prunable(_aux_gap2(pu, pv, h, entry_aux, e), dmin2):
+        if _prunable(_aux_gap2(position, entries.aux, e), search.dmin2):
             continue
-        best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
-    return best, dmin2, n_buckets, n_tests
+        search = _test_entry(query, entries.values, e, search)
+    return search
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
-                entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
-                buckets, sketch, scan_offsets, scan_bound, fine_is_all,
-                fine_dd2_max, block, n_blocks, block_start, block_boxes,
-                block_offsets, block_bound2, entry_bound, run_scan, eager):
-    """Exact nearest entry of one query.
-
-    Returns (row in ``entries``, squared distance, b, d, whether the query's
-    sketch was computed). ``low`` and ``high`` are the caller's scratch space
-    for the query's sketch intervals (``SKETCH_LANES`` float32 each). With
-    ``eager`` the sketch is computed at the first non-empty bucket.
-    """
-    # Projection on the PCA plane and distance from it, in float64.
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _position(query, plane):
+    """The query's :class:`Position` (projection on the PCA plane), in float64."""
     pu = 0.0
     pv = 0.0
     r2 = 0.0
     q_norm2 = 0.0
+    center, axes = plane.center, plane.axes
     for k in range(center.shape[0]):
         x = np.float64(query[k])
         t = x - center[k]
@@ -439,143 +489,165 @@ def _lookup_one(query, low, high, center, axes, half_width, delta, n, entries,
         r2 += t * t
         q_norm2 += x * x
     h = np.sqrt(max(r2 - pu * pu - pv * pv, 0.0))
-    i = min(max(int(np.floor((pu + half_width) / delta)), 0), n - 1)
-    j = min(max(int(np.floor((pv + half_width) / delta)), 0), n - 1)
+    return Position(pu, pv, h, r2, q_norm2)
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _lookup_one(query, low, high, grid, eager):
+    """Exact nearest entry of one query.
+
+    Returns (the final :class:`Search`, whether the query's sketch was
+    computed). ``low`` and ``high`` are the caller's scratch space for the
+    query's sketch intervals (``SKETCH_LANES`` float32 each). With ``eager``
+    the sketch is computed at the first non-empty bucket.
+    """
+    plane, plan = grid.plane, grid.plan
+    n, delta, half_width = plane.n, plane.delta, plane.half_width
+    position = _position(query, plane)
+    i = min(max(int(np.floor((position.u + half_width) / delta)), 0), n - 1)
+    j = min(max(int(np.floor((position.v + half_width) / delta)), 0), n - 1)
     # Eq. 15 bounds a cell's distance for a query anywhere in cell (i, j). This
     # query lies ``margin`` inside every border of its cell, so every cell but
     # its own is at least (delta ||(r, s)||_dd + margin) away.
-    fu = (pu + half_width) / delta - i
-    fv = (pv + half_width) / delta - j
+    fu = (position.u + half_width) / delta - i
+    fv = (position.v + half_width) / delta - j
     margin = max(min(fu, 1.0 - fu, fv, 1.0 - fv), 0.0) * delta
-
-    best = -1
-    dmin2 = np.inf
-    n_buckets = 0
-    n_tests = 0
-    has_sketch = False
+    search = Search(-1, np.inf, 0, 0)
+    sketched = False
 
     # Phase 1: the paper's scan (Procedure 1) over the nearby cells, eq. 15 order.
-    # Either in runs (low dimensions: the cells of one row that share a bound,
-    # one contiguous range of entries) or cell by cell; the other list is empty.
-    runs, run_bound, block_last = run_scan
-    for o in range(runs.shape[0]):
-        if _prunable((run_bound[o] + margin) ** 2, dmin2):  # early termination, eq. 16
-            return best, dmin2, n_buckets, n_tests, has_sketch
-        best, dmin2, n_buckets, n_tests = _scan_run(
-            query, pu, pv, i, j, runs[o], n, delta, half_width, block_last, cell_begin,
-            cell_end, entries, best, dmin2, n_buckets, n_tests)
-    # Cell by cell: the query's sketch costs about as much as n_axes full
-    # distances, so it is computed before the scan would spend that much
-    # (counting the next bucket's entries) and is paid back by the sketch tests
-    # from then on: the ski-rental rule, within about twice the better choice
-    # made in hindsight. The caller asks for it at once (``eager``) when the
-    # previous query, a neighbouring pixel in the pipeline's order, needed it.
-    n_axes = sketch[2]
-    bucket_h, box_low, box_high, bucket_mean, bucket_radius = buckets
-    switch2 = (_SWITCH_CELLS * delta) ** 2
-    covered_dd2 = fine_dd2_max + 1  # entries of cells with smaller dd2 were tested
-    for o in range(scan_offsets.shape[0]):
-        if _prunable((scan_bound[o] + margin) ** 2, dmin2):  # early termination, eq. 16
-            return best, dmin2, n_buckets, n_tests, has_sketch
-        dr = scan_offsets[o, 0]
-        ds = scan_offsets[o, 1]
-        if o >= _SWITCH_AFTER and switch2 < dmin2 < np.inf:
-            # The best entry so far is more than _SWITCH_CELLS cells away, so
-            # the fine scan would visit more than about pi _SWITCH_CELLS^2
-            # cells: the coarse level is cheaper. Every cell with a smaller
-            # dd2 than this one has been scanned; phase 2 skips only those.
-            covered_dd2 = _dd2(dr, ds)
-            break
-        ci = i + dr
-        cj = j + ds
-        if ci < 0 or ci >= n or cj < 0 or cj >= n:
-            continue
-        bucket = cell_bucket[ci * n + cj]
-        if bucket < 0:
-            continue
-        start = cell_begin[ci * n + cj]
-        stop = cell_end[ci * n + cj]
-        if not has_sketch and (eager or n_tests + (stop - start) > n_axes):
-            _query_sketch(query, r2, q_norm2, sketch, low, high)
-            has_sketch = True
-        best, dmin2, n_buckets, n_tests = _scan_bucket(
-            query, pu, pv, h, has_sketch, low, high, bucket,
-            start, stop, entries, entry_aux, entry_sketch, entry_bound, bucket_h,
-            box_low, box_high, bucket_mean, bucket_radius,
-            ci * delta - half_width, cj * delta - half_width, delta, best, dmin2,
-            n_buckets, n_tests)
-    if fine_is_all and covered_dd2 > fine_dd2_max:  # phase 1 covered the whole grid
-        return best, dmin2, n_buckets, n_tests, has_sketch
+    covered_dd2 = plan.fine_dd2_max + 1  # entries of cells with smaller dd2 were tested
+    if plan.use_runs:
+        # Low dimensions: the cells of one row that share a bound are one
+        # contiguous range of entries, tested without looking at their buckets.
+        for o in range(plan.runs.shape[0]):
+            if _prunable((plan.run_bound[o] + margin) ** 2, search.dmin2):  # eq. 16
+                return search, sketched
+            search = _scan_run(query, position, i, j, plan.runs[o], grid, search)
+    else:
+        # Cell by cell: the query's sketch costs about as much as n_axes full
+        # distances, so it is computed before the scan would spend that much
+        # (counting the next bucket's entries) and is paid back by the sketch
+        # tests from then on: the ski-rental rule, within about twice the better
+        # choice made in hindsight. The caller asks for it at once (``eager``)
+        # when the previous query, a neighbouring pixel in the pipeline's
+        # order, needed it.
+        n_axes = grid.sketch.n_axes
+        cells = grid.cells
+        switch2 = (SWITCH_CELLS * delta) ** 2
+        for o in range(plan.offsets.shape[0]):
+            if _prunable((plan.bound[o] + margin) ** 2, search.dmin2):  # eq. 16
+                return search, sketched
+            dr = plan.offsets[o, 0]
+            ds = plan.offsets[o, 1]
+            if o >= SWITCH_AFTER and switch2 < search.dmin2 < np.inf:
+                # The best entry so far is more than SWITCH_CELLS cells away, so
+                # the fine scan would visit more than about pi SWITCH_CELLS^2
+                # cells: the coarse level is cheaper. Every cell with a smaller
+                # dd2 than this one has been scanned; phase 2 skips only those.
+                covered_dd2 = _dd2(dr, ds)
+                break
+            ci = i + dr
+            cj = j + ds
+            if ci < 0 or ci >= n or cj < 0 or cj >= n:
+                continue
+            cell = ci * n + cj
+            bucket = cells.bucket[cell]
+            if bucket < 0:
+                continue
+            start = cells.begin[cell]
+            stop = cells.end[cell]
+            if not sketched and (eager or search.tests + (stop - start) > n_axes):
+                _query_sketch(query, position, grid.sketch, low, high)
+                sketched = True
+            search = _scan_bucket(query, position, sketched, low, high, ci, cj, bucket,
+                                  start, stop, grid, search)
+    if plan.fine_is_all and covered_dd2 > plan.fine_dd2_max:  # phase 1 covered the grid
+        return search, sketched
 
-    # Phase 2: the query lies far from the table. Scan blocks of block x block
+    # Phase 2: the query lies far from the table. Scan blocks of side x side
     # cells in the same order at the coarse level; bound blocks and entries
     # with the sketch.
-    if not has_sketch:
-        _query_sketch(query, r2, q_norm2, sketch, low, high)
-        has_sketch = True
-    block_low, block_high = block_boxes
-    bi = i // block
-    bj = j // block
-    for o in range(block_offsets.shape[0]):
-        if _prunable(block_bound2[o], dmin2):
+    if not sketched:
+        _query_sketch(query, position, grid.sketch, low, high)
+        sketched = True
+    blocks, entries = grid.blocks, grid.entries
+    bi = i // blocks.side
+    bj = j // blocks.side
+    for o in range(blocks.offsets.shape[0]):
+        if _prunable(blocks.bound2[o], search.dmin2):
             break
-        ki = bi + block_offsets[o, 0]
-        kj = bj + block_offsets[o, 1]
-        if ki < 0 or ki >= n_blocks or kj < 0 or kj >= n_blocks:
+        ki = bi + blocks.offsets[o, 0]
+        kj = bj + blocks.offsets[o, 1]
+        if ki < 0 or ki >= blocks.count or kj < 0 or kj >= blocks.count:
             continue
-        kb = ki * n_blocks + kj
-        start = block_start[kb]
-        stop = block_start[kb + 1]
+        kb = ki * blocks.count + kj
+        start = blocks.start[kb]
+        stop = blocks.start[kb + 1]
         if start == stop:
             continue
-        if _prunable(_sketch_gap2(low, high, block_low, block_high, kb), dmin2):
+        if _prunable(_sketch_gap2(low, high, blocks.box_low, blocks.box_high, kb),
+                     search.dmin2):
             continue
-        n_buckets += 1
+        search = Search(search.best, search.dmin2, search.buckets + 1, search.tests)
         for e in range(start, stop):
-            if _dd2(entry_cell[e, 0] - i, entry_cell[e, 1] - j) < covered_dd2:
+            if _dd2(entries.cell[e, 0] - i, entries.cell[e, 1] - j) < covered_dd2:
                 continue  # phase 1 tested it
-            if entry_bound and _prunable(
-                    _sketch_gap2(low, high, entry_sketch, entry_sketch, e), dmin2):
+            if plan.entry_bound and _prunable(
+                    _sketch_gap2(low, high, entries.sketch, entries.sketch, e),
+                    search.dmin2):
                 continue
-            best, dmin2, n_tests = _test_entry(query, entries, e, best, dmin2, n_tests)
-    return best, dmin2, n_buckets, n_tests, has_sketch
+            search = _test_entry(query, entries.values, e, search)
+    return search, sketched
 
 
-_CHUNK = 256
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _lookup_chunk(queries, first, grid, low, high, out_row, out_dist, out_buckets,
+                  out_tests):
+    """Look up the rows of ``queries`` (padded like the entries) into outputs
+    ``first``, ``first + 1``, ... (one thread's unit of work).
 
-
-@njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def lookup(queries, center, axes, half_width, delta, n, entries, entry_aux, entry_sketch,
-           entry_cell, cell_bucket, cell_begin, cell_end, buckets, sketch, scan_offsets,
-           scan_bound, fine_is_all, fine_dd2_max, block, n_blocks, block_start,
-           block_boxes, block_offsets, block_bound2, entry_bound, run_scan, out_row,
-           out_dist, out_buckets, out_tests):
-    """Nearest table row for every query (``prange`` over chunks of queries).
-
-    Each chunk allocates its scratch space (a query's sketch intervals, and a
-    zero-padded copy of the query when entries are padded) once, outside the
-    per-query loop.
+    Compiled without numba's reference counting (``_nrt=False``): every
+    attribute access on ``grid`` that yields an array would otherwise count a
+    reference up and down (two atomic operations), and that made lookups
+    1.4-1.8x slower (measured). Nothing here allocates.
     """
-    n_queries = queries.shape[0]
-    n_chunks = (n_queries + _CHUNK - 1) // _CHUNK
+    eager = False
+    for r in range(queries.shape[0]):
+        search, sketched = _lookup_one(queries[r], low, high, grid, eager)
+        eager = sketched  # neighbours tend to need the same work
+        q = first + r
+        out_row[q] = search.best
+        out_dist[q] = np.sqrt(search.dmin2)
+        out_buckets[q] = search.buckets
+        out_tests[q] = search.tests
+
+
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
+def lookup(queries, plane, entries, cells, buckets, sketch, blocks, plan, out_row,
+           out_dist, out_buckets, out_tests):
+    """Nearest table row of every query into the outputs (``prange`` over chunks).
+
+    The parts of a :class:`GridData` come one by one: numba's parallel loops
+    take flat tuples only, not tuples of tuples. The outputs (row in storage
+    order, distance, buckets examined b and full distances d per query) are
+    plain arrays: with numba 0.68 writes to arrays held in a tuple were lost
+    in a parallel loop. Each chunk of ``QUERY_CHUNK`` queries gets its scratch
+    space (a query's sketch intervals) and, when entries are zero-padded, a
+    padded copy of its queries.
+    """
+    n_queries, dims = queries.shape
+    n_chunks = (n_queries + QUERY_CHUNK - 1) // QUERY_CHUNK
+    width = entries.values.shape[1]
     for chunk in prange(n_chunks):
+        grid = GridData(plane, entries, cells, buckets, sketch, blocks, plan)
         low = np.zeros(SKETCH_LANES, dtype=np.float32)
         high = np.zeros(SKETCH_LANES, dtype=np.float32)
-        padded = np.zeros(entries.shape[1], dtype=np.float32)  # the padding stays 0
-        eager = False
-        for q in range(chunk * _CHUNK, min((chunk + 1) * _CHUNK, n_queries)):
-            query = queries[q]
-            if padded.shape[0] > queries.shape[1]:
-                padded[:queries.shape[1]] = query
-                query = padded
-            best, dmin2, nb, nd, sketched = _lookup_one(
-                query, low, high, center, axes, half_width, delta, n, entries,
-                entry_aux, entry_sketch, entry_cell, cell_bucket, cell_begin, cell_end,
-                buckets, sketch, scan_offsets, scan_bound, fine_is_all, fine_dd2_max,
-                block, n_blocks, block_start, block_boxes, block_offsets, block_bound2,
-                entry_bound, run_scan, eager)
-            eager = sketched  # neighbours tend to need the same work
-            out_row[q] = best
-            out_dist[q] = np.sqrt(dmin2)
-            out_buckets[q] = nb
-            out_tests[q] = nd
+        first = chunk * QUERY_CHUNK
+        stop = min(first + QUERY_CHUNK, n_queries)
+        part = queries[first:stop]
+        if width > dims:
+            part = np.zeros((stop - first, width), dtype=np.float32)  # padding stays 0
+            part[:, :dims] = queries[first:stop]
+        _lookup_chunk(part, first, grid, low, high, out_row, out_dist, out_buckets,
+                      out_tests)

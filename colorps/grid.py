@@ -21,8 +21,38 @@ from .errors import InputError
 
 __all__ = ["BucketGrid", "QueryStats"]
 
-# Principal axes in a sketch (at most SKETCH_LANES - 1; the last lane is the residual).
-_SKETCH_AXES = 15
+# ---------------------------------------------------------------- tuning
+# Constants of the grid's construction; the measurements behind them are in
+# docs/benchmarks.md. Those of the lookup kernels are in _grid_kernels.py.
+
+#: Default N per table size K: the paper's optimum round(2 sqrt(K)), about
+#: 0.25 entries per cell.
+CELLS_PER_SQRT_ENTRY = 2.0
+#: Principal axes in a sketch (at most SKETCH_LANES - 1; the last lane is the
+#: residual). 10 axes measured 1.6-2.0x slower at D = 90, 5 axes 1.3-3.6x.
+SKETCH_AXES = 15
+#: Candidate N of ``n="auto"``, as factors of the default, timed on at most
+#: AUTO_N_MAX_SAMPLE queries (1 thread, best of AUTO_N_REPEATS).
+AUTO_N_FACTORS = (0.25, 0.5, 1.0, 2.0)
+AUTO_N_MAX_SAMPLE = 4000
+AUTO_N_REPEATS = 3
+#: Queries numba hands to a thread at a time (lookup cost varies over an
+#: image: noisy or unlit regions), in units of the kernel's QUERY_CHUNK.
+THREAD_CHUNKS = 4
+
+
+def fine_radius(n: int) -> int:
+    """Cells (eq. 15 norm) the fine scan of phase 1 reaches on an N x N grid.
+
+    Beyond it blocks of cells take over; both about sqrt(N), measured best on
+    the benchmark's noisy and outlier runs.
+    """
+    return max(2, int(round(np.sqrt(n) / 3)))
+
+
+def block_side(n: int) -> int:
+    """Side, in cells, of a block of the coarse level (phase 2)."""
+    return max(2, int(round(np.sqrt(n) / 2)))
 
 
 @dataclass(frozen=True)
@@ -110,19 +140,19 @@ def _padded(rows: np.ndarray) -> np.ndarray:
 
 
 def _sketches(principal: np.ndarray, center: np.ndarray,
-              entries: np.ndarray) -> tuple[tuple, np.ndarray]:
+              entries: np.ndarray) -> tuple[_grid_kernels.Sketch, np.ndarray]:
     """Sketch definition (for the kernel) and every entry's sketch.
 
     ``principal`` holds the principal axes as rows, leading first; ``entries``
     (K, D) float64. The sketch of x is (A(x - b), r(x)) in ``SKETCH_LANES``
     float32 lanes, A the float32-rounded leading axes, r^2 = |x - b|^2 -
     |A(x - b)|^2 / sigma^2 (see ``_grid_kernels._query_sketch``); lanes past
-    the residual are 0. Returns the tuple the kernel takes and the (K, lanes)
+    the residual are 0. Returns the kernel's Sketch and the (K, lanes)
     float32 entry sketches.
     """
     lanes = _grid_kernels.SKETCH_LANES
     dims = entries.shape[1]
-    n_axes = min(_SKETCH_AXES, lanes - 1, dims)
+    n_axes = min(SKETCH_AXES, lanes - 1, dims)
     axes32 = np.zeros((lanes - 1, dims), dtype=np.float32)
     axes32[:n_axes] = principal[:n_axes]
     axes64 = axes32[:n_axes].astype(np.float64)
@@ -138,9 +168,10 @@ def _sketches(principal: np.ndarray, center: np.ndarray,
     points = coords.astype(np.float32)
     # Stored sketches are off by float32 rounding, and residuals by the float64
     # rounding of their cancellation; queries' intervals are widened by this.
-    point_slack = (4.0 * _grid_kernels._U32 + 1e-7) * (1.0 + norms.max())
-    sketch = (axes32, offset, n_axes, float(np.linalg.norm(center)), 1.0 / sigma ** 2,
-              float(point_slack))
+    point_slack = (4.0 * _grid_kernels.U32 + 1e-7) * (1.0 + norms.max())
+    sketch = _grid_kernels.Sketch(axes=axes32, offset=offset, n_axes=n_axes,
+                                  center_norm=float(np.linalg.norm(center)),
+                                  inv_sigma2=1.0 / sigma ** 2, point_slack=float(point_slack))
     return sketch, points
 
 
@@ -159,6 +190,122 @@ def _boxes(points: np.ndarray, first: np.ndarray,
     all_high = np.full((groups.size, points.shape[1]), -np.inf, dtype=np.float32)
     all_low[groups], all_high[groups] = low, high
     return all_low, all_high
+
+# ---------------------------------------------------------------- build steps
+def _plane(t64: np.ndarray, n: int):
+    """The PCA plane and the N x N grid on it (eq. 11), and where entries fall.
+
+    Returns the kernel's Plane, the (D, D) principal axes as rows (leading
+    first), each entry's (u, v, h) as (K, 3) float64, and its cell (row i,
+    column j) as two (K,) int64 arrays.
+    """
+    dims = t64.shape[1]
+    center = t64.mean(axis=0)
+    centred = t64 - center
+    _, eigvec = np.linalg.eigh(centred.T @ centred)  # moment matrix, ascending
+    principal = eigvec[:, ::-1].T  # rows, leading first
+    axes = np.zeros((2, dims))
+    axes[: min(2, dims)] = principal[:2]  # D = 1 leaves a zero second axis
+    proj = centred @ axes.T  # (K, 2), same arithmetic as the kernel
+    r2 = (centred * centred).sum(axis=1)
+    pu, pv = proj[:, 0], proj[:, 1]
+    h = np.sqrt(np.maximum(r2 - pu * pu - pv * pv, 0.0))
+    extent = max(np.abs(pu).max(), np.abs(pv).max())
+    half_width = extent + 1e-6 * (1.0 + extent)  # eq. 11, eps > 0
+    delta = 2.0 * half_width / n
+    ci = np.clip(np.floor((pu + half_width) / delta).astype(np.int64), 0, n - 1)
+    cj = np.clip(np.floor((pv + half_width) / delta).astype(np.int64), 0, n - 1)
+    plane = _grid_kernels.Plane(center=center, axes=axes, half_width=float(half_width),
+                                delta=float(delta), n=n)
+    return plane, principal, np.stack([pu, pv, h], axis=1), ci, cj
+
+
+def _storage(ci: np.ndarray, cj: np.ndarray, n: int, block: int):
+    """Storage order of the entries, and the ranges of cells, buckets and blocks.
+
+    Entries are stored by block, then cell in row-major order, so every bucket
+    and every block is a contiguous range (CSR storage at both levels), and so
+    are the cells of one row within a block. Every cell, empty or not, has a
+    begin and an end.
+
+    Returns the (K,) order, the first storage position of each bucket, the
+    kernel's Cells, and the (blocks^2 + 1,) int64 block starts.
+    """
+    n_blocks = -(-n // block)
+
+    def block_of(row, col):
+        return (row // block) * n_blocks + col // block
+
+    def storage_key(row, col):
+        return block_of(row, col) * (n * n) + row * n + col
+
+    key = storage_key(ci, cj)
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    all_keys = storage_key(*np.divmod(np.arange(n * n), n))
+    begin = np.searchsorted(key_sorted, all_keys, side="left").astype(np.int64)
+    end = np.searchsorted(key_sorted, all_keys, side="right").astype(np.int64)
+    cell_sorted = (ci * n + cj)[order]
+    first = np.flatnonzero(np.r_[True, cell_sorted[1:] != cell_sorted[:-1]])
+    bucket = np.full(n * n, -1, dtype=np.int32)
+    bucket[cell_sorted[first]] = np.arange(first.size, dtype=np.int32)
+    block_start = np.searchsorted(block_of(ci, cj)[order],
+                                  np.arange(n_blocks * n_blocks + 1)).astype(np.int64)
+    return order, first, _grid_kernels.Cells(bucket=bucket, begin=begin, end=end), block_start
+
+
+def _buckets(sorted64: np.ndarray, h_sorted: np.ndarray, first: np.ndarray,
+             entry_sketch: np.ndarray) -> _grid_kernels.Buckets:
+    """Per bucket: [h_min, h_max], the sketch box, the mean and the radius about it."""
+    counts = np.diff(np.r_[first, sorted64.shape[0]])
+    h_range = np.stack([np.minimum.reduceat(h_sorted, first),
+                        np.maximum.reduceat(h_sorted, first)], axis=1)
+    mean = (np.add.reduceat(sorted64, first, axis=0) / counts[:, None]).astype(np.float32)
+    # Radius about the stored (float32) mean, inflated for rounding.
+    of_entry = np.repeat(np.arange(first.size), counts)
+    spread = np.sqrt(((sorted64 - mean[of_entry]) ** 2).sum(axis=1))
+    radius = np.maximum.reduceat(spread, first) * (1 + 1e-6) + 1e-7
+    box_low, box_high = _boxes(entry_sketch, first)
+    return _grid_kernels.Buckets(h_range=np.ascontiguousarray(h_range), box_low=box_low,
+                                 box_high=box_high, mean=_padded(mean), radius=radius)
+
+
+def _blocks(entry_sketch: np.ndarray, block_start: np.ndarray, n: int, block: int,
+            delta: float) -> _grid_kernels.Blocks:
+    """The coarse level: block ranges, sketch boxes and the block scan order."""
+    n_blocks = -(-n // block)
+    # Empty blocks are never tested; give them an empty box all the same.
+    filled = block_start[:-1] < block_start[1:]
+    box_low, box_high = _boxes(entry_sketch, block_start[:-1][filled], filled)
+    offsets, dd2 = _scan_order(n_blocks)
+    return _grid_kernels.Blocks(side=block, count=n_blocks, start=block_start,
+                                box_low=box_low, box_high=box_high, offsets=offsets,
+                                bound2=(block * delta) ** 2 * dd2.astype(np.float64))
+
+
+def _scan_plan(n: int, dims: int, block: int, delta: float) -> _grid_kernels.ScanPlan:
+    """Phase 1's scan order: runs of cells (D <= RUN_SCAN_DIMS) or cell by cell."""
+    offsets, dd2 = _scan_order(n)
+    fine_dd2_max = fine_radius(n) ** 2
+    n_fine = int(np.searchsorted(dd2, fine_dd2_max, side="right"))
+    fine_offsets, fine_dd2 = offsets[:n_fine], dd2[:n_fine]
+    use_runs = dims <= _grid_kernels.RUN_SCAN_DIMS
+    runs, run_dd2 = np.zeros((0, 3), dtype=np.int64), fine_dd2[:0]
+    if use_runs:
+        runs, run_dd2 = _row_runs(fine_offsets, fine_dd2)
+        fine_offsets, fine_dd2 = fine_offsets[:0], fine_dd2[:0]
+    return _grid_kernels.ScanPlan(
+        use_runs=use_runs, runs=runs, run_bound=delta * np.sqrt(run_dd2.astype(np.float64)),
+        # The last column of each column's block, looked up: an integer
+        # division per run cost 8-14 % of a mono lookup (measured).
+        block_last=np.minimum((np.arange(n) // block + 1) * block - 1, n - 1),
+        offsets=np.ascontiguousarray(fine_offsets),
+        bound=delta * np.sqrt(fine_dd2.astype(np.float64)),
+        fine_is_all=n_fine == offsets.shape[0], fine_dd2_max=fine_dd2_max,
+        # The per-entry sketch bound of phase 2 costs one vector of float32
+        # lanes; it pays when a full distance costs more (measured: 5-7 %
+        # faster at D = 30 than without it).
+        entry_bound=dims > _grid_kernels.SKETCH_LANES)
 
 
 class BucketGrid:
@@ -240,7 +387,7 @@ class BucketGrid:
                 raise InputError(f"n: expected a positive integer, 'auto' or None, got {n!r}")
             n = None if sample is None else _choose_n(table, as_float32_2d(sample, "sample"))
         if n is None:
-            n = max(1, int(round(2.0 * np.sqrt(table.shape[0]))))
+            n = default_n(table.shape[0])
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise InputError(f"n: expected a positive integer, 'auto' or None, got {n!r}")
         self._build(table, int(n))
@@ -249,116 +396,29 @@ class BucketGrid:
     def _build(self, table: np.ndarray, n: int) -> None:
         k_entries, dims = table.shape
         t64 = table.astype(np.float64)
-        center = t64.mean(axis=0)
-        centred = t64 - center
-        _, eigvec = np.linalg.eigh(centred.T @ centred)  # moment matrix, ascending
-        principal = eigvec[:, ::-1].T  # rows, leading first
-        axes = np.zeros((2, dims))
-        axes[: min(2, dims)] = principal[:2]  # D = 1 leaves a zero second axis
-        proj = centred @ axes.T  # (K, 2), same arithmetic as the kernel
-        r2 = (centred * centred).sum(axis=1)
-        pu, pv = proj[:, 0], proj[:, 1]
-        h = np.sqrt(np.maximum(r2 - pu * pu - pv * pv, 0.0))
-        extent = max(np.abs(pu).max(), np.abs(pv).max())
-        half_width = extent + 1e-6 * (1.0 + extent)  # eq. 11, eps > 0
-        delta = 2.0 * half_width / n
-        ci = np.clip(np.floor((pu + half_width) / delta).astype(np.int64), 0, n - 1)
-        cj = np.clip(np.floor((pv + half_width) / delta).astype(np.int64), 0, n - 1)
-        cell = ci * n + cj
-        # The fine scan (phase 1) reaches fine_radius cells; beyond it, blocks of
-        # block x block cells take over (both about sqrt(N), measured best on the
-        # benchmark's noisy and outlier runs).
-        fine_radius = max(2, int(round(np.sqrt(n) / 3)))
-        block = max(2, int(round(np.sqrt(n) / 2)))
-        n_blocks = -(-n // block)
-
-        def block_of(row, col):
-            return (row // block) * n_blocks + col // block
-
-        def storage_key(row, col):
-            """Entries are stored by block, then cell in row-major order."""
-            return block_of(row, col) * (n * n) + row * n + col
-
-        # Every bucket and every block is a contiguous range (CSR storage at both
-        # levels), and so are the cells of one row within a block. Every cell,
-        # empty or not, has a begin and an end.
-        block_id = block_of(ci, cj)
-        key = storage_key(ci, cj)
-        order = np.argsort(key, kind="stable")
-        key_sorted = key[order]
-        all_keys = storage_key(*np.divmod(np.arange(n * n), n))
-        cell_begin = np.searchsorted(key_sorted, all_keys, side="left")
-        cell_end = np.searchsorted(key_sorted, all_keys, side="right")
-        cell_sorted = cell[order]
-        first = np.flatnonzero(np.r_[True, cell_sorted[1:] != cell_sorted[:-1]])
-        counts = np.diff(np.r_[first, k_entries])
-        occupied = cell_sorted[first]
-        n_buckets = occupied.size
-        cell_bucket = np.full(n * n, -1, dtype=np.int32)
-        cell_bucket[occupied] = np.arange(n_buckets, dtype=np.int32)
-        bucket_of_entry = np.repeat(np.arange(n_buckets), counts)
-        block_start = np.searchsorted(block_id[order], np.arange(n_blocks * n_blocks + 1))
-
-        entries = _padded(table[order])
-        aux = np.stack([pu[order], pv[order], h[order]], axis=1)
-        bucket_h = np.stack([np.minimum.reduceat(aux[:, 2], first),
-                             np.maximum.reduceat(aux[:, 2], first)], axis=1)
+        plane, principal, uvh, ci, cj = _plane(t64, n)
+        block = block_side(n)
+        order, first, cells, block_start = _storage(ci, cj, n, block)
         sorted64 = t64[order]
-        bucket_mean = (np.add.reduceat(sorted64, first, axis=0) / counts[:, None])
-        bucket_mean = bucket_mean.astype(np.float32)
-        # Radius about the stored (float32) mean, inflated for rounding.
-        spread = np.sqrt(((sorted64 - bucket_mean[bucket_of_entry]) ** 2).sum(axis=1))
-        bucket_radius = np.maximum.reduceat(spread, first) * (1 + 1e-6) + 1e-7
-        sketch, entry_sketch = _sketches(principal, center, sorted64)
-        bucket_boxes = _boxes(entry_sketch, first)
-        # Empty blocks are never tested; give them an empty box all the same.
-        filled = block_start[:-1] < block_start[1:]
-        block_boxes = _boxes(entry_sketch, block_start[:-1][filled], filled)
-
-        offsets, dd2 = _scan_order(n)
-        fine_dd2_max = fine_radius * fine_radius
-        n_fine = int(np.searchsorted(dd2, fine_dd2_max, side="right"))
-        block_offsets, block_dd2 = _scan_order(n_blocks)
-        # Phase 1 scans offsets[:n_fine] either in runs of cells (low D) or
-        # cell by cell; the kernel gets one of the two lists, the other empty.
-        fine_offsets, fine_dd2 = offsets[:n_fine], dd2[:n_fine]
-        runs, run_dd2 = np.zeros((0, 3), dtype=np.int64), fine_dd2[:0]
-        if dims <= _grid_kernels.RUN_SCAN_DIMS:
-            runs, run_dd2 = _row_runs(fine_offsets, fine_dd2)
-            fine_offsets, fine_dd2 = fine_offsets[:0], fine_dd2[:0]
-
+        sketch, entry_sketch = _sketches(principal, plane.center, sorted64)
+        entries = _grid_kernels.Entries(
+            values=_padded(table[order]), aux=np.ascontiguousarray(uvh[order]),
+            sketch=entry_sketch,
+            cell=np.stack([ci[order], cj[order]], axis=1).astype(np.int64))
+        self._data = _grid_kernels.GridData(
+            plane=plane, entries=entries, cells=cells,
+            buckets=_buckets(sorted64, uvh[order, 2], first, entry_sketch), sketch=sketch,
+            blocks=_blocks(entry_sketch, block_start, n, block, plane.delta),
+            plan=_scan_plan(n, dims, block, plane.delta))
+        self._entry_index = order.astype(np.int64)
         self.n = n
         self.size = k_entries
         self.dims = dims
-        self.cell_side = float(delta)
-        self.half_width = float(half_width)
-        self.center = center
-        self.axes = axes[:2].copy()
-        self.bucket_counts = np.zeros(n * n, dtype=np.int64)
-        self.bucket_counts[occupied] = counts
-        self._entry_index = order.astype(np.int64)
-        self._sketch, self._entry_sketch = sketch, entry_sketch  # for tests
-        self._kernel_args = (
-            center, axes, float(half_width), float(delta), n, entries,
-            np.ascontiguousarray(aux), entry_sketch,
-            np.stack([ci[order], cj[order]], axis=1).astype(np.int64),
-            cell_bucket, cell_begin.astype(np.int64), cell_end.astype(np.int64),
-            (np.ascontiguousarray(bucket_h), *bucket_boxes,
-             _padded(bucket_mean), bucket_radius),
-            sketch, np.ascontiguousarray(fine_offsets),
-            delta * np.sqrt(fine_dd2.astype(np.float64)), n_fine == offsets.shape[0],
-            fine_dd2_max, block,
-            n_blocks, block_start.astype(np.int64), block_boxes, block_offsets,
-            (block * delta) ** 2 * block_dd2.astype(np.float64),
-            # The per-entry sketch bound of phase 2 costs one vector of float32
-            # lanes; it pays when a full distance costs more (measured: 5-7 %
-            # faster at D = 30 than without it).
-            dims > _grid_kernels.SKETCH_LANES,
-            # The last column of each column's block, looked up: an integer
-            # division per run cost 8-14 % of a mono lookup (measured).
-            (runs, delta * np.sqrt(run_dd2.astype(np.float64)),
-             np.minimum((np.arange(n) // block + 1) * block - 1, n - 1)),
-        )
+        self.cell_side = plane.delta
+        self.half_width = plane.half_width
+        self.center = plane.center
+        self.axes = plane.axes.copy()
+        self.bucket_counts = cells.end - cells.begin
 
     # ------------------------------------------------------------------ query
     def query(self, queries, *, threads: int | None = None, return_stats: bool = False):
@@ -400,8 +460,8 @@ class BucketGrid:
         try:
             # Lookup cost varies over an image (noisy or unlit regions): hand out
             # chunks of queries to threads dynamically, not in two fixed halves.
-            with numba.parallel_chunksize(4):
-                _grid_kernels.lookup(q, *self._kernel_args, rows, dist, n_buckets, n_tests)
+            with numba.parallel_chunksize(THREAD_CHUNKS):
+                _grid_kernels.lookup(q, *self._data, rows, dist, n_buckets, n_tests)
         finally:
             numba.set_num_threads(previous)
         rows = self._entry_index[rows]
@@ -415,7 +475,13 @@ class BucketGrid:
                 f"alpha={self.size / self.n ** 2:.3g})")
 
 
-def _choose_n(table: np.ndarray, sample: np.ndarray, max_sample: int = 4000) -> int:
+def default_n(size: int) -> int:
+    """The default grid size N for a table of ``size`` entries (paper's optimum)."""
+    return max(1, int(round(CELLS_PER_SQRT_ENTRY * np.sqrt(size))))
+
+
+def _choose_n(table: np.ndarray, sample: np.ndarray,
+              max_sample: int = AUTO_N_MAX_SAMPLE) -> int:
     """Pick the fastest grid size N for queries like ``sample`` (timed, 1 thread)."""
     if sample.shape[1] != table.shape[1]:
         raise InputError(
@@ -424,13 +490,13 @@ def _choose_n(table: np.ndarray, sample: np.ndarray, max_sample: int = 4000) -> 
     if sample.shape[0] > max_sample:
         pick = np.random.default_rng(0).choice(sample.shape[0], max_sample, replace=False)
         sample = sample[pick]
-    base = 2.0 * np.sqrt(table.shape[0])
-    candidates = sorted({max(1, int(round(base * f))) for f in (0.25, 0.5, 1.0, 2.0)})
+    base = CELLS_PER_SQRT_ENTRY * np.sqrt(table.shape[0])
+    candidates = sorted({max(1, int(round(base * f))) for f in AUTO_N_FACTORS})
     best_n, best_time = candidates[0], np.inf
     for n in candidates:
         grid = BucketGrid(table, n)
         grid.query(sample[:8], threads=1)  # compile / warm up
-        elapsed = min(_timed(grid, sample) for _ in range(3))
+        elapsed = min(_timed(grid, sample) for _ in range(AUTO_N_REPEATS))
         if elapsed < best_time:
             best_n, best_time = n, elapsed
     return best_n

@@ -102,7 +102,7 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
     queries = np.concatenate([noisy(table, rng, 200, 0.02),
                               noisy(table, rng, 50, 3.0)])
     grid = BucketGrid(table)
-    sketch, points = grid._sketch, grid._entry_sketch
+    sketch, points = grid._data.sketch, grid._data.entries.sketch
     entries = table[grid._entry_index].astype(np.float64)  # storage order
     low = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
     high = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
@@ -110,7 +110,8 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
     for q in queries:
         r2 = float(((q.astype(np.float64) - grid.center) ** 2).sum())
         q_norm2 = float((q.astype(np.float64) ** 2).sum())
-        kernels._query_sketch(q, r2, q_norm2, sketch, low, high)
+        position = kernels.Position(0.0, 0.0, 0.0, r2, q_norm2)  # (u, v, h) unused
+        kernels._query_sketch(q, position, sketch, low, high)
         true2 = ((entries - q.astype(np.float64)) ** 2).sum(axis=1)
         bound2 = np.array([kernels._sketch_gap2(low, high, points, points, e)
                            for e in range(entries.shape[0])])
