@@ -9,9 +9,12 @@ from importlib.metadata import PackageNotFoundError, version
 from .errors import ColorPSError, GaugeError, ImageReadError, InputError, OutputError
 from . import synth
 from .gauge import Gauge, find_sphere
+from .geometry import angular_error, sphere_normals
 from .grid import BucketGrid, QueryStats
 from .integrate import integrate, weights_from_quality
-from .reconstruct import Reconstruction, reconstruct
+from .options import Options
+from .reasons import Reason
+from .reconstruct import Reconstruction, ReconstructionStats, reconstruct
 from .signatures import SignatureSet, compute_signatures, luminance
 
 try:
@@ -20,8 +23,10 @@ except PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0+unknown"
 
 __all__ = [
-    "BucketGrid", "QueryStats", "Gauge", "find_sphere", "Reconstruction", "reconstruct",
-    "synth", "integrate", "weights_from_quality", "SignatureSet", "compute_signatures", "luminance",
+    "reconstruct", "Options", "Reconstruction", "ReconstructionStats", "Reason",
+    "Gauge", "find_sphere", "BucketGrid", "QueryStats",
+    "SignatureSet", "compute_signatures", "luminance",
+    "integrate", "weights_from_quality", "angular_error", "sphere_normals", "synth",
     "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",
     "__version__",
 ]

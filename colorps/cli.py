@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
-from pathlib import Path
+from dataclasses import fields
 
 import numpy as np
 
 from . import __version__
-from .errors import ColorPSError, InputError
-from .pipeline import integrate_file, read_mask, reconstruct_files
+from .errors import ColorPSError
+from .options import FLOAT_DARK_LEVEL, Options
+from .pipeline import integrate_file, reconstruct_files
 
 
 class _FORMATTER(argparse.HelpFormatter):
@@ -23,6 +23,9 @@ class _FORMATTER(argparse.HelpFormatter):
         if "default" not in text and action.default not in (None, False, argparse.SUPPRESS):
             text += " (default: %(default)s)"
         return text
+
+
+_DEFAULTS = Options()
 
 
 def _sphere(text: str):
@@ -46,33 +49,32 @@ def _albedo(text: str):
     return values[0] if len(values) == 1 else values
 
 
-def _level(text: str):
-    if text == "none":
-        return "none"
+def _positive_float(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
         value = -1.0
     if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a linear value > 0 or 'none', got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a value > 0, got {text!r}")
     return value
 
 
-def _none_or(value, default):
-    """A level option: None (not given) becomes ``default``, "none" becomes None."""
-    if value is None:
-        return default
-    return None if value == "none" else value
+def _or_words(convert, **words):
+    """An argument type: one of the given words (to its value), else ``convert``."""
+
+    def parse(text: str):
+        if text in words:
+            return words[text]
+        try:
+            return convert(text)
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentTypeError(
+                f"{exc}; or one of {', '.join(map(repr, words))}") from None
+
+    return parse
 
 
-def _positive_float(text: str):
-    value = _level(text)
-    if value == "none":
-        raise argparse.ArgumentTypeError("expected a linear value > 0")
-    return value
-
-
-def _positive_int(text: str):
+def _positive_int(text: str) -> int:
     try:
         n = int(text)
     except ValueError:
@@ -82,8 +84,20 @@ def _positive_int(text: str):
     return n
 
 
-def _grid_n(text: str):
-    return "auto" if text == "auto" else _positive_int(text)
+def _channel(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        k = -1
+    if k < 0:
+        raise argparse.ArgumentTypeError(f"expected 'luminance' or a channel index, "
+                                         f"got {text!r}")
+    return k
+
+
+def _shown(value) -> str:
+    """An option value as typed on the command line."""
+    return "none" if value is None else str(value)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,36 +117,48 @@ def build_parser() -> argparse.ArgumentParser:
                      help="gauge sphere in gauge-image pixels, or 'auto' to find it")
     rec.add_argument("--gauge-albedo", type=_albedo, default=1.0, metavar="A|R,G,B",
                      help="albedo of the gauge, one value or one per band")
-    rec.add_argument("--mode", choices=("colour", "mono"), default="colour",
-                     help="signatures from all bands or from one band")
-    rec.add_argument("--band", default=None, metavar="luminance|K",
-                     help="mono mode: 'luminance' (RGB) or a channel index "
-                          "(default: luminance for RGB, else channel 0)")
     rec.add_argument("--out", required=True, metavar="DIR", help="output folder")
     rec.add_argument("--mask", metavar="FILE", help="scene mask image (non-zero = solve)")
-    rec.add_argument("--threads", type=_positive_int, default=None,
-                     help="lookup threads (default: all cores)")
-    rec.add_argument("--grid-n", type=_grid_n, default=None, metavar="N|auto",
-                     help="bucket grid size (default: round(2 sqrt(table size)))")
-    rec.add_argument("--encoding", choices=("auto", "linear", "srgb"), default="auto",
-                     help="pixel encoding: auto = integer formats sRGB, float formats linear")
-    rec.add_argument("--clip-level", type=_level, default=None, metavar="V|none",
-                     help="linear value at or above which a measurement is clipped "
-                          "(default: from the bit depth: top code of integer files, "
-                          "none for float files)")
-    rec.add_argument("--dark-level", type=_positive_float, default=None, metavar="V",
-                     help="linear noise floor of one measurement; bands whose OV norm is "
-                          "below V sqrt(m) are too dark (default: 2 codes of integer "
-                          "files, 3.3e-5 for float files)")
-    rec.add_argument("--max-distance", type=_level, default=0.1, metavar="D|none",
-                     help="largest match distance (per band) of a solved pixel; worse "
-                          "matches are reported as 'no good match'")
-    rec.add_argument("--no-height", action="store_true",
-                     help="skip the height map, relief and overview pictures")
-    rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=None,
-                     help="also write a mesh of the height field with albedo colours")
     rec.add_argument("--overwrite", action="store_true", help="replace existing results")
     rec.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    # Options: dest is the Options field; defaults are Options()'s.
+    rec.add_argument("--mode", choices=("colour", "mono"), default=_DEFAULTS.mode,
+                     help="signatures from all bands or from one band")
+    rec.add_argument("--band", type=_or_words(_channel, luminance="luminance"),
+                     default=_DEFAULTS.band, metavar="luminance|K",
+                     help="mono mode: 'luminance' (RGB) or a channel index "
+                          "(default: luminance for RGB, else channel 0)")
+    rec.add_argument("--colourspace", default=_DEFAULTS.colourspace, metavar="NAME",
+                     help="mono mode: colour-science name of the RGB colourspace of the "
+                          "luminance")
+    rec.add_argument("--threads", type=_positive_int, default=_DEFAULTS.threads,
+                     help="lookup threads (default: all cores)")
+    rec.add_argument("--grid-n", type=_or_words(_positive_int, auto="auto"),
+                     default=_DEFAULTS.grid_n, metavar="N|auto",
+                     help="bucket grid size (default: round(2 sqrt(table size)))")
+    rec.add_argument("--encoding", choices=("auto", "linear", "srgb"),
+                     default=_DEFAULTS.encoding,
+                     help="pixel encoding: auto = integer formats sRGB, float formats linear")
+    rec.add_argument("--clip-level", type=_or_words(_positive_float, auto="auto", none=None),
+                     default=_DEFAULTS.clip_level, metavar="V|auto|none",
+                     help="linear value at or above which a measurement is clipped; auto: "
+                          "the top code of integer files, none for float files "
+                          f"(default: {_shown(_DEFAULTS.clip_level)})")
+    rec.add_argument("--dark-level", type=_or_words(_positive_float, auto="auto"),
+                     default=_DEFAULTS.dark_level, metavar="V|auto",
+                     help="linear noise floor of one measurement; bands whose OV norm is "
+                          "below V sqrt(m) are too dark; auto: 2 codes of integer files, "
+                          f"{FLOAT_DARK_LEVEL:.2g} for float files "
+                          f"(default: {_shown(_DEFAULTS.dark_level)})")
+    rec.add_argument("--max-distance", type=_or_words(_positive_float, none=None),
+                     default=_DEFAULTS.max_distance, metavar="D|none",
+                     help="largest match distance (per band) of a solved pixel; worse "
+                          "matches are reported as 'no good match' "
+                          f"(default: {_shown(_DEFAULTS.max_distance)})")
+    rec.add_argument("--no-height", dest="height", action="store_false",
+                     help="skip the height map, relief and overview pictures")
+    rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
+                     help="also write a mesh of the height field with albedo colours")
 
     integ = sub.add_parser("integrate", formatter_class=_FORMATTER,
                            help="integrate a normal map (normal.exr) into a height map")
@@ -152,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
                                "its accuracy against ground truth")
     demo.add_argument("--out", default="colorps-demo", metavar="DIR", help="output folder")
     demo.add_argument("--data", default=None, metavar="DIR",
-                      help="sample folder (default: data/sample of the source tree)")
+                      help="a folder made by 'colorps synth' (default: the bundled sample)")
     demo.add_argument("--mode", choices=("colour", "mono"), default="colour")
     demo.add_argument("--overwrite", action="store_true", help="replace existing results")
 
@@ -171,51 +197,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = np.clip((a * b).sum(axis=-1), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
-
-
-def run_demo(out, data=None, mode="colour", overwrite=False):
-    """Reconstruct the bundled sample and print accuracy against its ground truth."""
-    from .io import read_image
-
-    folder = Path(data) if data else Path(__file__).resolve().parent.parent / "data" / "sample"
-    info_path = folder / "sample.json"
-    if not info_path.exists():
-        raise InputError(f"{info_path}: sample not found; run from a source checkout or give "
-                         "--data DIR (make one with 'colorps synth --out DIR')")
-    info = json.loads(info_path.read_text())
-    g = info["gauge_sphere"]
-    mask = folder / "mask.png"
-    result = reconstruct_files([str(folder / "scene_*.exr")], [str(folder / "gauge_*.exr")],
-                               (g["cx"], g["cy"], g["r"]), out,
-                               gauge_albedo=info["gauge_albedo"], mode=mode, overwrite=overwrite,
-                               mask_path=mask if mask.exists() else None)
-    truth_n, _ = read_image(folder / "truth_normal.exr")
-    truth_a, _ = read_image(folder / "truth_albedo.exr")
-    truth_mask = read_mask(folder / "truth_mask.png", truth_n.shape[:2])
-    ok = truth_mask & result.solved
-    err = _angular_error_deg(result.normals[ok], truth_n[ok])
-    rel = np.abs(result.albedo[ok] / truth_a[ok] - 1)
-    print(f"colorps demo ({mode} mode): {ok.sum()} of {truth_mask.sum()} scene pixels solved")
-    print(f"  normal error (deg): mean {err.mean():.3f}, median {np.median(err):.3f}, "
-          f"95th percentile {np.percentile(err, 95):.3f}")
-    print("  albedo relative error, median per band: "
-          + ", ".join(f"{np.median(rel[:, k]):.2%}" for k in range(rel.shape[1])))
-    truth_height = folder / "truth_height.exr"
-    if result.height is not None and truth_height.exists():
-        z_true = read_image(truth_height)[0][..., 0]
-        both = ok & np.isfinite(result.height)
-        err = (result.height[both] - result.height[both].mean()) - \
-            (z_true[both] - z_true[both].mean())
-        depth = np.ptp(z_true[both])
-        print(f"  height RMS error {np.sqrt(np.mean(err ** 2)):.2f} px "
-              f"({np.sqrt(np.mean(err ** 2)) / depth:.2%} of the {depth:.1f} px relief)")
-    print(f"  outputs in {out}/ (normal.png, albedo.png, quality.exr, report.json, ...)")
-    return result
-
-
 def _warning_line(message, category, filename, lineno, line=None):
     return f"colorps: warning: {message}\n"
 
@@ -223,22 +204,21 @@ def _warning_line(message, category, filename, lineno, line=None):
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "reconstruct" and args.mesh and not args.height:
+        parser.error("--mesh needs the height map; drop --no-height")
     warnings.formatwarning = _warning_line
     try:
         if args.command == "reconstruct":
+            options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
             result = reconstruct_files(
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
-                mode=args.mode, band=args.band, mask_path=args.mask, threads=args.threads,
-                grid_n=args.grid_n, encoding=args.encoding, overwrite=args.overwrite,
-                progress=not args.quiet, height=not args.no_height, mesh=args.mesh,
-                clip_level=_none_or(args.clip_level, "auto"),
-                dark_level="auto" if args.dark_level is None else args.dark_level,
-                max_distance=_none_or(args.max_distance, None))
+                mask_path=args.mask, options=options, overwrite=args.overwrite,
+                progress=not args.quiet)
             if not args.quiet:
                 s = result.stats
-                print(f"solved {s['solved']} of {s['pixels']} pixels "
-                      f"(table {s['table_size']}, grid N={s['grid_n']}, "
-                      f"{s['seconds']['total']:.2f} s); results in {args.out}/")
+                print(f"solved {s.solved} of {s.pixels} pixels "
+                      f"(table {s.table_size}, grid N={s.grid_n}, "
+                      f"{s.seconds.total:.2f} s); results in {args.out}/")
         elif args.command == "integrate":
             z = integrate_file(args.normals, args.out, mask_path=args.mask,
                                weights_path=args.weights, method=args.method, mesh=args.mesh,
@@ -247,7 +227,10 @@ def main(argv=None) -> int:
             print(f"integrated {inside.sum()} pixels; relief depth "
                   f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")
         elif args.command == "demo":
-            run_demo(args.out, args.data, args.mode, args.overwrite)
+            from .sample import run_demo
+
+            _, report = run_demo(args.out, args.data, args.mode, args.overwrite)
+            print("\n".join(report.lines(args.mode, args.out)))
         elif args.command == "synth":
             from .synth import write_synthetic
 

@@ -1,11 +1,8 @@
 """The gauge: an object of known normals and albedo, usually a sphere.
 
 Sphere geometry under orthographic view, in pixel coordinates (x = column,
-y = row, pixel centres at integers), centre (cx, cy) and radius r in pixels::
-
-    n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx^2 - ny^2))
-
-(camera space: x right, y up, z towards the camera). Only pixels safely inside
+y = row, pixel centres at integers), centre (cx, cy) and radius r in pixels:
+see :func:`colorps.geometry.sphere_normals`. Only pixels safely inside
 the rim are used: at the rim the normal changes fastest per pixel and pixels
 mix sphere and background.
 """
@@ -17,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GaugeError, InputError
+from .geometry import sphere_normals
 
 __all__ = ["Gauge", "find_sphere", "parse_albedo"]
 
@@ -102,13 +100,8 @@ class Gauge:
             raise GaugeError(f"sphere: radius {radius:g} px is too small for a useful "
                              f"table (need at least 8 px; 100+ px recommended)")
         margin = max(2.0, 0.02 * radius) if rim_margin is None else float(rim_margin)
-        y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-        nx = (x - cx) / radius
-        ny = -(y - cy) / radius
-        rho = np.hypot(nx, ny)
+        normals, rho = sphere_normals((h, w), cx, cy, radius)
         mask = rho <= 1.0 - margin / radius
-        nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, None))
-        normals = np.stack([nx, ny, nz], axis=-1)
         normals[~mask] = 0.0
         return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)))
 

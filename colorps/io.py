@@ -28,16 +28,17 @@ from typing import Literal, Sequence
 import numpy as np
 
 from .errors import ImageReadError, InputError, OutputError
+from .options import FLOAT_DARK_LEVEL
 
-__all__ = ["read_image", "read_stack", "write_image", "expand_paths", "srgb_decode",
-           "srgb_encode", "input_levels", "LossyInputWarning", "Encoding"]
+__all__ = ["read_image", "read_stack", "read_mask", "write_image", "expand_paths",
+           "srgb_decode", "srgb_encode", "input_levels", "LossyInputWarning", "Encoding"]
 
 Encoding = Literal["auto", "linear", "srgb"]
 _INTEGER_TYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32")
 _MAX_CODE = {"uint8": 255, "int8": 127, "uint16": 65535, "int16": 32767,
              "uint32": 4294967295, "int32": 2147483647}
-#: Default per-measurement dark level of floating-point inputs (linear units).
-FLOAT_DARK_LEVEL = 1e-4 / 3
+#: Dark level of integer files, in codes of the file's pixel type.
+DARK_CODES = 2.0
 
 
 class LossyInputWarning(UserWarning):
@@ -80,9 +81,9 @@ def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float
     """Clip level and dark level (linear) implied by an image file's pixel type.
 
     Integer files: a measurement is clipped at the top code (linear value of
-    code - 1/2) and dark below 2 codes, both decoded with ``encoding`` like the
-    pixels themselves. Floating-point files: nothing is clipped and the dark
-    level is 1e-4 / 3 (linear).
+    code - 1/2) and dark below :data:`DARK_CODES` codes, both decoded with
+    ``encoding`` like the pixels themselves. Floating-point files: nothing is
+    clipped and the dark level is :data:`~colorps.options.FLOAT_DARK_LEVEL`.
 
     Returns
     -------
@@ -97,7 +98,7 @@ def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float
     if pixel_type not in _INTEGER_TYPES:
         return None, FLOAT_DARK_LEVEL
     top = _MAX_CODE[pixel_type]
-    levels = np.array([(top - 0.5) / top, 2.0 / top], dtype=np.float32)
+    levels = np.array([(top - 0.5) / top, DARK_CODES / top], dtype=np.float32)
     if encoding in ("auto", "srgb"):
         levels = srgb_decode(levels)
     return float(levels[0]), float(levels[1])
@@ -164,6 +165,25 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
     if encoding == "srgb" or (encoding == "auto" and str(spec.format) in _INTEGER_TYPES):
         pixels = srgb_decode(pixels)
     return np.ascontiguousarray(pixels), names
+
+
+def read_mask(path, shape: tuple[int, int]) -> np.ndarray:
+    """A mask image of the given (H, W): True where its first channel is non-zero.
+
+    Read as stored (linear), so any value above one half counts as inside.
+
+    Raises
+    ------
+    ImageReadError
+        The file cannot be read.
+    InputError
+        Its size differs from ``shape``.
+    """
+    image, _ = read_image(path, "linear")
+    if image.shape[:2] != tuple(shape):
+        raise InputError(f"{path}: mask is {image.shape[1]}x{image.shape[0]} but the images "
+                         f"are {shape[1]}x{shape[0]}")
+    return image[..., 0] > 0.5
 
 
 def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "stack",

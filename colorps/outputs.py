@@ -1,4 +1,4 @@
-"""Write a reconstruction to an output folder, all files or none.
+"""Every output file of a reconstruction, written all together or not at all.
 
 ==============  ==============================================================
 file            content
@@ -9,15 +9,17 @@ normal.png      8-bit preview (n + 1) / 2 in R, G, B; black where not solved
 albedo.exr      float32 linear albedo, one channel per input band (input names)
 albedo.png      sRGB preview (colour-science), black where not solved
 quality.exr     float32 match distance (signature units); NaN where not solved
-invalid.png     why pixels are not solved, one colour per reason: black solved,
-                grey background, blue too dark, yellow clipped, magenta
-                invalid value (NaN, Inf, negative), red no good match
-report.json     inputs, parameters, statistics, pixels by reason
-height.exr      float32 height in pixels (see :mod:`colorps.integrate`), optional
-relief.png      shaded relief of the height map, optional
-overview.png    scene, normals, albedo and relief side by side, optional
+invalid.png     why pixels are not solved, one colour per
+                :class:`~colorps.Reason`: black solved, grey background, blue
+                too dark, yellow clipped, magenta invalid value (NaN, Inf,
+                negative), red no good match
+report.json     inputs, options, statistics, pixels by reason
+height.exr      float32 height in pixels (see :mod:`colorps.integrate`), when
+                the result has a height map
+relief.png      shaded relief of the height map, with it
+overview.png    scene, normals, albedo and relief side by side, with it
 mesh.ply/.obj   triangle mesh of the height field with albedo vertex colours,
-                optional
+                when asked for
 ==============  ==============================================================
 
 Files are first written to a temporary folder inside the output folder and only
@@ -32,29 +34,33 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from .errors import OutputError
-from .figures import as_rgb
+from .figures import as_rgb, overview, shaded_relief
 from .io import srgb_encode, write_image
-from .reconstruct import REASONS, Reconstruction
+from .reasons import Reason, reason_picture
+from .reconstruct import Reconstruction
 
-__all__ = ["OUTPUT_FILES", "OPTIONAL_FILES", "prepare_output_dir", "save_reconstruction"]
+__all__ = ["OUTPUT_FILES", "HEIGHT_FILES", "MESH_FILES", "prepare_output_dir",
+           "save_reconstruction", "check_height_targets", "save_height"]
 
+#: Written by every reconstruction.
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
                 "invalid.png", "report.json")
-#: Colours of invalid.png, by reason code (see colorps.reconstruct.REASONS).
-REASON_COLOURS = {0: (0, 0, 0), 1: (64, 64, 64), 2: (40, 90, 255), 3: (255, 220, 0),
-                  4: (255, 0, 255), 5: (255, 40, 40)}
-#: Written when asked for (height maps are on by default in the CLI).
-OPTIONAL_FILES = ("height.exr", "relief.png", "overview.png", "mesh.ply", "mesh.obj")
+#: Written when the result has a height map.
+HEIGHT_FILES = ("height.exr", "relief.png", "overview.png")
+#: Written when asked for, by kind.
+MESH_FILES = {"ply": "mesh.ply", "obj": "mesh.obj"}
+_ALL_FILES = OUTPUT_FILES + HEIGHT_FILES + tuple(MESH_FILES.values())
+_CONVENTIONS = ("camera-space normals: x right, y up, z towards the camera; "
+                "pixel (x, y) = (column, row); linear values")
 
 
 def prepare_output_dir(out_dir, *, overwrite: bool = False,
-                       files: Sequence[str] = OUTPUT_FILES + OPTIONAL_FILES,
-                       create: bool = False) -> Path:
+                       files: Sequence[str] = _ALL_FILES, create: bool = False) -> Path:
     """Check an output folder before any work is done (and create it if asked).
 
     Without ``create`` nothing is made: a missing folder only needs its nearest
@@ -94,57 +100,45 @@ def prepare_output_dir(out_dir, *, overwrite: bool = False,
 
 def save_reconstruction(result: Reconstruction, out_dir, *,
                         channel_names: Sequence[str] | None = None,
-                        report: dict | None = None, overwrite: bool = False,
-                        extra_files: dict | None = None) -> list[Path]:
-    """Write all output files of a reconstruction (see the module docstring).
+                        scene_preview: np.ndarray | None = None,
+                        report: dict | None = None, mesh: Sequence[str] = (),
+                        overwrite: bool = False) -> list[Path]:
+    """Write every output file of a reconstruction (see the module docstring).
 
     Parameters
     ----------
     result : Reconstruction
+        With ``result.height`` set, the height files are written too.
     out_dir : str or Path
     channel_names : sequence of str, optional
         Names of the input bands (default R, G, B or Y / B0, B1, ...).
+    scene_preview : (H, W, c) ndarray, optional
+        Linear scene image for overview.png (default: the albedo).
     report : dict, optional
-        Inputs and parameters to record in report.json beside the statistics.
+        Inputs and options to record in report.json beside the statistics.
+    mesh : sequence of {"ply", "obj"}, optional
+        Mesh files to write (needs ``result.height``).
     overwrite : bool, optional
         Replace existing results.
-    extra_files : dict, optional
-        More ``{file name: writer}`` to write in the same transaction; each
-        ``writer(path)`` writes one file (e.g. the height map, a mesh).
 
     Returns
     -------
     list of Path
         The files written.
     """
+    if mesh and result.height is None:
+        raise OutputError("a mesh needs the height map; integrate the normals first")
+    writers = _writers(result, channel_names, scene_preview, report, mesh)
     out = prepare_output_dir(out_dir, overwrite=overwrite, create=True)
-    c = result.albedo.shape[-1]
-    if channel_names is None:
-        channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
-    normal_png = np.where(result.solved[..., None], (result.normals + 1) / 2, 0.0)
-    albedo_png = srgb_encode(as_rgb(np.where(result.solved[..., None], result.albedo, 0.0)))
-    doc = dict(report or {})
-    doc["statistics"] = result.stats
-    doc["reasons"] = {str(k): v for k, v in REASONS.items()}
-    doc["conventions"] = ("camera-space normals: x right, y up, z towards the camera; "
-                          "pixel (x, y) = (column, row); linear values")
-    doc["files"] = list(OUTPUT_FILES) + sorted(extra_files or {})
     try:
         tmp = Path(tempfile.mkdtemp(prefix=".colorps-", dir=out))
     except OSError as exc:
         raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
     try:
-        write_image(tmp / "normal.exr", result.normals, channel_names=["X", "Y", "Z"])
-        write_image(tmp / "normal.png", normal_png, dtype="uint8")
-        write_image(tmp / "albedo.exr", result.albedo, channel_names=list(channel_names))
-        write_image(tmp / "albedo.png", albedo_png, dtype="uint8")
-        write_image(tmp / "quality.exr", result.quality, channel_names=["Q"])
-        write_image(tmp / "invalid.png", _reason_picture(result.reason), dtype="uint8")
-        for name, writer in (extra_files or {}).items():
-            writer(tmp / name)
-        (tmp / "report.json").write_text(json.dumps(doc, indent=2, default=_jsonable))
+        for name, write in writers.items():
+            write(tmp / name)
         written = []
-        for name in doc["files"]:
+        for name in writers:
             os.replace(tmp / name, out / name)
             written.append(out / name)
         return written
@@ -152,11 +146,81 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _reason_picture(reason: np.ndarray) -> np.ndarray:
-    table = np.zeros((256, 3), dtype=np.float32)
-    for code, rgb in REASON_COLOURS.items():
-        table[code] = np.array(rgb) / 255.0
-    return table[reason]
+def check_height_targets(out, mesh=None, *, overwrite: bool = False) -> None:
+    """Check where :func:`save_height` will write, before any work is done.
+
+    Raises
+    ------
+    InputError
+        ``out`` is not an OpenEXR (.exr) path, or ``mesh`` not .ply / .obj.
+    OutputError
+        A target exists (and not ``overwrite``) or its folder does not.
+    """
+    from .errors import InputError
+    from .mesh import MESH_FORMATS
+
+    if Path(out).suffix.lower() != ".exr":
+        raise InputError(f"{out}: the height map is written as OpenEXR (.exr)")
+    if mesh is not None and Path(mesh).suffix.lower().lstrip(".") not in MESH_FORMATS:
+        raise InputError(f"{mesh}: mesh format must be one of {MESH_FORMATS}")
+    for target in [Path(out)] + ([Path(mesh)] if mesh else []):
+        if target.exists() and not overwrite:
+            raise OutputError(f"{target}: already exists; use --overwrite to replace it")
+        if not target.parent.is_dir():
+            raise OutputError(f"{target.parent}: output folder does not exist")
+
+
+def save_height(height: np.ndarray, out, *, mesh=None, overwrite: bool = False) -> None:
+    """Write a height map (.exr, channel Z) and optionally a mesh of it (.ply/.obj)."""
+    check_height_targets(out, mesh, overwrite=overwrite)
+    if mesh:
+        _write_mesh(height, None, mesh)
+    write_image(out, height, channel_names=["Z"])
+
+
+def _writers(result: Reconstruction, channel_names, scene_preview, report,
+             mesh) -> dict[str, Callable[[Path], object]]:
+    """``{file name: write(path)}`` of every file to write, report.json last."""
+    c = result.albedo.shape[-1]
+    if channel_names is None:
+        channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
+    solved = result.solved[..., None]
+    writers = {
+        "normal.exr": lambda p: write_image(p, result.normals, channel_names=["X", "Y", "Z"]),
+        "normal.png": lambda p: write_image(p, np.where(solved, (result.normals + 1) / 2, 0.0),
+                                            dtype="uint8"),
+        "albedo.exr": lambda p: write_image(p, result.albedo,
+                                            channel_names=list(channel_names)),
+        "albedo.png": lambda p: write_image(
+            p, srgb_encode(as_rgb(np.where(solved, result.albedo, 0.0))), dtype="uint8"),
+        "quality.exr": lambda p: write_image(p, result.quality, channel_names=["Q"]),
+        "invalid.png": lambda p: write_image(p, reason_picture(result.reason), dtype="uint8"),
+    }
+    z = result.height
+    if z is not None:
+        preview = result.albedo if scene_preview is None else scene_preview
+        title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
+        writers["height.exr"] = lambda p: write_image(p, z, channel_names=["Z"])
+        writers["relief.png"] = lambda p: write_image(p, shaded_relief(z), dtype="uint8")
+        writers["overview.png"] = lambda p: write_image(
+            p, overview(preview, result.normals, result.albedo, z, title=title),
+            dtype="uint8")
+        for kind in mesh:
+            writers[MESH_FILES[kind]] = lambda p: _write_mesh(z, result.albedo, p)
+    doc = dict(report or {})
+    doc["statistics"] = result.stats.as_dict()
+    doc["reasons"] = {str(int(r)): r.label for r in Reason}
+    doc["conventions"] = _CONVENTIONS
+    doc["files"] = list(writers) + ["report.json"]
+    writers["report.json"] = lambda p: p.write_text(
+        json.dumps(doc, indent=2, default=_jsonable))
+    return writers
+
+
+def _write_mesh(height, colours, path) -> None:
+    from .mesh import height_mesh, write_mesh
+
+    write_mesh(height_mesh(height, colours), path)
 
 
 def _jsonable(value):

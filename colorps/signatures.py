@@ -26,12 +26,9 @@ import numpy as np
 
 from ._checks import check_stack
 from .errors import InputError
+from .options import FLOAT_DARK_LEVEL, dark_threshold
 
-__all__ = ["SignatureSet", "compute_signatures", "luminance", "measurement_flags",
-           "DEFAULT_MIN_NORM"]
-
-#: Default smallest OV norm (linear units, 0..1 scale) that is normalised.
-DEFAULT_MIN_NORM = 1e-4
+__all__ = ["SignatureSet", "compute_signatures", "luminance", "measurement_flags"]
 
 
 @dataclass(frozen=True)
@@ -132,7 +129,7 @@ def _mono_band(stack: np.ndarray, band: int | Literal["luminance"] | None,
 def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
                        band: int | Literal["luminance"] | None = None,
                        colourspace: str = "sRGB",
-                       min_norm: float = DEFAULT_MIN_NORM,
+                       min_norm: float | None = None,
                        clip_level: float | None = None) -> SignatureSet:
     """Normalise the observation vectors of a stack into signatures.
 
@@ -151,6 +148,8 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     min_norm : float, optional
         A band's OV whose Euclidean norm is at most this (linear units) cannot be
         normalised: the pixel is reported invalid, never turned into NaN.
+        Default: ``FLOAT_DARK_LEVEL * sqrt(m)`` (see
+        :func:`colorps.options.dark_threshold`).
     clip_level : float, optional
         Measurements at or above this linear value are clipped (saturated) and
         make their band invalid. None: nothing is clipped.
@@ -172,6 +171,8 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     m = data.shape[0]
     if mode not in ("colour", "mono"):
         raise InputError(f"mode: expected 'colour' or 'mono', got {mode!r}")
+    if min_norm is None:
+        min_norm = dark_threshold(FLOAT_DARK_LEVEL, m)
     if not np.isfinite(min_norm) or min_norm < 0:
         raise InputError(f"min_norm: expected a finite value >= 0, got {min_norm!r}")
     if clip_level is not None and not clip_level > 0:

@@ -23,6 +23,7 @@ from typing import Literal
 import numpy as np
 
 from .errors import InputError
+from .geometry import sphere_normals
 
 __all__ = [
     "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
@@ -196,19 +197,16 @@ def sphere_surface(size: int | tuple[int, int], radius: float, centre=None,
 
     Notes
     -----
-    n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx^2 - ny^2)) inside the disk.
+    Normals from :func:`colorps.geometry.sphere_normals` inside the disk.
     """
     h, w = (size, size) if np.isscalar(size) else size
     if centre is None:
         centre = ((w - 1) / 2.0, (h - 1) / 2.0)
     cx, cy = centre
-    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-    nx = (x - cx) / radius
-    ny = -(y - cy) / radius
-    rho2 = nx * nx + ny * ny
-    mask = rho2 < 1.0
-    nz = np.sqrt(np.clip(1.0 - rho2, 0.0, None))
-    normals = np.where(mask[..., None], np.stack([nx, ny, nz], axis=-1), 0.0)
+    n, rho = sphere_normals((h, w), cx, cy, radius)
+    mask = rho < 1.0
+    normals = np.where(mask[..., None], n, 0.0)
+    nz = normals[..., 2]
     alb = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (bands,))
     albedo_map = np.where(mask[..., None], alb, 0.0)
     height = np.where(mask, radius * nz, np.nan)

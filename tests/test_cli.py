@@ -43,7 +43,7 @@ def test_reconstruct_writes_every_output(sample, tmp_path):
     assert albedo_names == ["R", "G", "B"]
     report = json.loads((out / "report.json").read_text())
     assert report["statistics"]["solved"] == mask.sum()
-    assert report["mode"] == "colour" and report["statistics"]["grid_n"] > 1
+    assert report["options"]["mode"] == "colour" and report["statistics"]["grid_n"] > 1
     assert read_image(out / "normal.png", "linear")[0].shape == (64, 64, 3)
 
 
@@ -71,7 +71,7 @@ def test_list_file_input(sample, tmp_path):
     (lambda a, s: a.__setitem__(a.index("--scene") + 1, str(s / "nothing_*.exr")),
      "matches no file"),
     (lambda a, s: a.__setitem__(a.index("--gauge") + 1, str(s / "gauge_0[0-2].exr")),
-     "--scene gives 5 images but --gauge gives 3"),
+     "scene has 5 images but the gauge 3"),
     (lambda a, s: a.__setitem__(a.index("--sphere") + 1, "30,30,500"), "partly outside"),
     (lambda a, s: a.__setitem__(a.index("--scene") + 1, str(s / "missing.exr")),
      "missing.exr: no such file"),

@@ -41,7 +41,7 @@ def test_saturated_red_surface_solved_from_remaining_band():
     gauge_stack, gauge = gauge_for(lighting)
     result = reconstruct(synth.render(scene, lighting), gauge_stack, gauge, mask=scene.mask)
     assert result.solved[scene.mask].all()
-    assert result.stats["solved_from_band_subset"] == scene.mask.sum()
+    assert result.stats.solved_from_band_subset == scene.mask.sum()
     assert (result.bands_used[scene.mask] == 1).all()  # red only
     err = angular_error(result.normals[scene.mask], scene.normals[scene.mask])
     assert err.mean() < 0.5
@@ -92,7 +92,7 @@ def test_mono_clipped_and_bad_values_get_reasons():
     # Colour mode solves the same pixels from the bands that remain.
     colour_mode = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, clip_level=0.999)
     assert colour_mode.solved[[30, 35, 40], [30, 35, 40]].all()
-    assert colour_mode.stats["pixels_by_reason"]["clipped"] == 0
+    assert colour_mode.stats.pixels_by_reason["clipped"] == 0
 
 
 def test_cast_shadow_is_no_good_match():

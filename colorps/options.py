@@ -1,0 +1,162 @@
+"""Every setting of a reconstruction, with its default, in one frozen dataclass.
+
+:class:`Options` is shared by :func:`colorps.reconstruct` (array API),
+:func:`colorps.pipeline.reconstruct_files` (files in, files out) and the
+``colorps reconstruct`` command line, whose flags are the field names with
+dashes (``max_distance`` is ``--max-distance``). Each default is stated here
+and nowhere else.
+
+Levels are linear pixel values on the 0..1 scale of the decoded images.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["Options", "FLOAT_DARK_LEVEL", "MIN_IMAGES", "dark_threshold"]
+
+#: Noise floor of one measurement of a floating-point image (linear units): the
+#: dark level that "auto" means for EXR / float TIFF files and for arrays.
+FLOAT_DARK_LEVEL = 1e-4 / 3
+#: Fewest images each mode can work with.
+MIN_IMAGES = {"mono": 3, "colour": 2}
+
+_MODES = ("colour", "mono")
+_ENCODINGS = ("auto", "linear", "srgb")
+_MESHES = (None, "ply", "obj", "both")
+
+
+def dark_threshold(dark_level: float, images: int) -> float:
+    """Smallest usable OV norm: ``dark_level * sqrt(images)`` (linear units).
+
+    An OV of m measurements that are each at the noise floor has this norm; a
+    band whose OV norm is at or below it is "too dark" to normalise.
+    """
+    return float(dark_level) * float(np.sqrt(images))
+
+
+@dataclass(frozen=True)
+class Options:
+    """Settings of a reconstruction (frozen: change one with :meth:`replace`).
+
+    Attributes
+    ----------
+    mode : {"colour", "mono"}
+        Signatures from every band (colour, R^(c m)) or from one band (mono,
+        R^m); see :mod:`colorps.signatures`.
+    band : int, "luminance" or None
+        Mono mode: a channel index, or the luminance Y of RGB stacks. None:
+        luminance for 3-band stacks, else channel 0.
+    colourspace : str
+        colour-science name of the RGB colourspace used for luminance.
+    grid_n : int, "auto" or None
+        Bucket grid size N. None: ``round(2 sqrt(|T|))`` (the paper's optimum);
+        "auto": timed on a sample of the scene's signatures.
+    threads : int or None
+        Lookup threads (None: all of numba's threads).
+    dark_level : float or "auto"
+        Noise floor of one measurement (linear). A band whose OV norm is at or
+        below ``dark_level * sqrt(m)`` is "too dark". "auto": 2 codes of an
+        integer file (decoded like its pixels), :data:`FLOAT_DARK_LEVEL` for
+        floating-point files and arrays.
+    clip_level : float, "auto" or None
+        Measurements at or above this linear value are clipped. "auto": the
+        top code of an integer file, no clipping for floating-point files and
+        arrays. None: nothing is clipped.
+    max_distance : float or None
+        Largest match distance per band (``quality``) of a solved pixel; worse
+        matches are "no good match". None keeps every match.
+    encoding : {"auto", "linear", "srgb"}
+        Files only: how stored values map to linear light ("auto": integer
+        formats sRGB, floating-point formats linear).
+    height : bool
+        Files only: also integrate and write the height map, relief and
+        overview pictures.
+    mesh : {None, "ply", "obj", "both"}
+        Files only: also write a mesh of the height field (needs ``height``).
+
+    Examples
+    --------
+    >>> from colorps import Options
+    >>> Options().max_distance, Options(mode="mono").replace(threads=1).threads
+    (0.1, 1)
+    """
+
+    mode: Literal["colour", "mono"] = "colour"
+    band: int | Literal["luminance"] | None = None
+    colourspace: str = "sRGB"
+    grid_n: int | Literal["auto"] | None = None
+    threads: int | None = None
+    dark_level: float | Literal["auto"] = "auto"
+    clip_level: float | Literal["auto"] | None = "auto"
+    max_distance: float | None = 0.1
+    encoding: Literal["auto", "linear", "srgb"] = "auto"
+    height: bool = True
+    mesh: Literal["ply", "obj", "both"] | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in _MODES:
+            raise InputError(f"mode: expected 'colour' or 'mono', got {self.mode!r}")
+        if self.band is not None and self.band != "luminance" and not _is_count(self.band, 0):
+            raise InputError(f"band: expected 'luminance' or a channel index, "
+                             f"got {self.band!r}")
+        if self.grid_n is not None and self.grid_n != "auto" and not _is_count(self.grid_n, 1):
+            raise InputError(f"grid_n: expected a positive integer, 'auto' or None, "
+                             f"got {self.grid_n!r}")
+        if self.threads is not None and not _is_count(self.threads, 1):
+            raise InputError(f"threads: expected a positive integer or None, "
+                             f"got {self.threads!r}")
+        if self.dark_level != "auto" and not _is_positive(self.dark_level):
+            raise InputError(f"dark_level: expected a linear value > 0 or 'auto', "
+                             f"got {self.dark_level!r}")
+        if self.clip_level not in ("auto", None) and not _is_positive(self.clip_level):
+            raise InputError(f"clip_level: expected a linear value > 0, 'auto' or None, "
+                             f"got {self.clip_level!r}")
+        if self.max_distance is not None and not _is_positive(self.max_distance):
+            raise InputError(f"max_distance: expected a value > 0 or None, "
+                             f"got {self.max_distance!r}")
+        if self.encoding not in _ENCODINGS:
+            raise InputError(f"encoding: expected 'auto', 'linear' or 'srgb', "
+                             f"got {self.encoding!r}")
+        if self.mesh not in _MESHES:
+            raise InputError(f"mesh: expected 'ply', 'obj', 'both' or None, got {self.mesh!r}")
+        if self.mesh is not None and not self.height:
+            raise InputError("mesh: a mesh needs the height map (height=True)")
+
+    def replace(self, **changes) -> "Options":
+        """A copy with some fields changed (checked like a new object)."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            raise InputError(f"unknown option(s): {', '.join(unknown)}")
+        return dataclasses.replace(self, **changes)
+
+    def with_levels(self, clip_level: float | None, dark_level: float) -> "Options":
+        """Resolve "auto" levels to the given ones (those of the input files)."""
+        return self.replace(
+            clip_level=clip_level if self.clip_level == "auto" else self.clip_level,
+            dark_level=dark_level if self.dark_level == "auto" else self.dark_level)
+
+    @property
+    def mesh_kinds(self) -> tuple[str, ...]:
+        """Mesh file extensions to write ("ply", "obj"), possibly none."""
+        return ("ply", "obj") if self.mesh == "both" else (self.mesh,) if self.mesh else ()
+
+    def as_dict(self) -> dict:
+        """The fields as a plain dict (for report.json)."""
+        return dataclasses.asdict(self)
+
+
+def _is_count(value, smallest: int) -> bool:
+    return (not isinstance(value, bool) and isinstance(value, (int, np.integer))
+            and value >= smallest)
+
+
+def _is_positive(value) -> bool:
+    return (not isinstance(value, (bool, str)) and isinstance(value, (int, float, np.number))
+            and bool(np.isfinite(value)) and value > 0)
