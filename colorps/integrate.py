@@ -148,10 +148,12 @@ def integrate(normals, mask=None, *, weights=None,
     --------
     >>> import numpy as np
     >>> from colorps import integrate, synth
-    >>> cap = synth.sphere_surface(64, 40)          # a sphere cap filling a disk
-    >>> z = integrate(cap.normals, cap.mask)
-    >>> truth = cap.height - np.nanmean(cap.height)
-    >>> bool(np.nanmax(np.abs(z - truth)) < 0.01 * 40)
+    >>> ball = synth.sphere_surface(101, 40)        # radius 40 px, centre (50, 50)
+    >>> y, x = np.mgrid[0:101, 0:101]
+    >>> cap = (x - 50) ** 2 + (y - 50) ** 2 < 32 ** 2  # up to 53 degrees of slope
+    >>> z = integrate(ball.normals, cap)
+    >>> truth = np.where(cap, ball.height, np.nan)
+    >>> bool(np.nanmax(np.abs(z - (truth - np.nanmean(truth)))) < 0.01)  # pixels
     True
     """
     if method not in METHODS:

@@ -246,7 +246,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     >>> ball = synth.sphere_surface(101, 48)
     >>> result = reconstruct(synth.render(scene, lights), synth.render(ball, lights),
     ...                      Gauge.from_sphere((101, 101), 50, 50, 48), mask=scene.mask)
-    >>> result.normals.shape, result.albedo.shape, int(result.solved.sum()) == scene.mask.sum()
+    >>> result.normals.shape, result.albedo.shape, bool(result.solved.sum() == scene.mask.sum())
     ((64, 64, 3), (64, 64, 3), True)
     """
     t_start = time.perf_counter()

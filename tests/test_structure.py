@@ -1,0 +1,137 @@
+"""Options, reasons, geometry and packaging: each concept has one home, and it holds."""
+
+import dataclasses
+import fnmatch
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import colorps
+from colorps import InputError, Options, Reason, synth
+from colorps.cli import build_parser
+from colorps.geometry import angular_error, sphere_normals
+from colorps.options import FLOAT_DARK_LEVEL, dark_threshold
+from colorps.reasons import reason_counts, reason_picture
+from colorps.sample import sample_folder
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def cli_options(*extra):
+    args = build_parser().parse_args(["reconstruct", "--scene", "s", "--gauge", "g",
+                                      "--sphere", "auto", "--out", "o", *extra])
+    return Options(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Options)})
+
+
+def test_cli_defaults_are_the_options_defaults():
+    assert cli_options() == Options()
+
+
+def test_cli_converts_every_option_text():
+    got = cli_options("--mode", "mono", "--band", "2", "--colourspace", "Adobe RGB (1998)",
+                      "--grid-n", "auto", "--threads", "1", "--dark-level", "0.001",
+                      "--clip-level", "none", "--max-distance", "none", "--encoding", "srgb",
+                      "--mesh", "obj")
+    assert got == Options(mode="mono", band=2, colourspace="Adobe RGB (1998)",
+                          grid_n="auto", threads=1, dark_level=0.001, clip_level=None,
+                          max_distance=None, encoding="srgb", mesh="obj")
+    assert cli_options("--band", "luminance", "--grid-n", "7", "--clip-level", "0.9",
+                       "--no-height").replace(mesh=None) == \
+        Options(band="luminance", grid_n=7, clip_level=0.9, height=False)
+
+
+@pytest.mark.parametrize("field, value", [
+    ("mode", "grey"), ("band", -1), ("band", "red"), ("grid_n", 0), ("grid_n", 2.5),
+    ("threads", 0), ("threads", True), ("dark_level", 0.0), ("dark_level", "none"),
+    ("clip_level", -1.0), ("clip_level", float("nan")), ("max_distance", 0),
+    ("encoding", "gamma"), ("mesh", "stl")])
+def test_bad_option_names_its_field(field, value):
+    with pytest.raises(InputError, match=f"^{field}: "):
+        Options(**{field: value})
+
+
+def test_options_replace_and_levels():
+    with pytest.raises(InputError, match="unknown option"):
+        Options().replace(maxdistance=1)
+    with pytest.raises(InputError, match="mesh"):
+        Options(height=False, mesh="ply")
+    assert Options().with_levels(0.99, 0.002) == Options(clip_level=0.99, dark_level=0.002)
+    assert Options(clip_level=None, dark_level=0.1).with_levels(0.99, 0.002) == \
+        Options(clip_level=None, dark_level=0.1)
+    assert dark_threshold(FLOAT_DARK_LEVEL, 9) == pytest.approx(3 * FLOAT_DARK_LEVEL)
+    assert Options(mesh="both").mesh_kinds == ("ply", "obj") and Options().mesh_kinds == ()
+
+
+def test_array_api_and_keyword_changes_agree():
+    lights = synth.ring_lights(5, 40)
+    scene, ball = synth.smiley_surface(48), synth.sphere_surface(90, 40)
+    args = (synth.render(scene, lights, noise=0.01, seed=1), synth.render(ball, lights),
+            colorps.Gauge.from_sphere((90, 90), 44.5, 44.5, 40))
+    a = colorps.reconstruct(*args, Options(mode="mono", max_distance=0.05), mask=scene.mask)
+    b = colorps.reconstruct(*args, mask=scene.mask, mode="mono", max_distance=0.05)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    assert a.stats.mode == "mono" and a.stats.max_distance == 0.05
+    assert a.stats.dark_threshold == pytest.approx(FLOAT_DARK_LEVEL * np.sqrt(5))
+    with pytest.raises(ValueError, match="read-only"):
+        a.normals[0, 0] = 0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.height = None
+    z = np.zeros(scene.mask.shape)
+    with_z = a.with_height(z, 0.5)
+    assert with_z.height is not None and a.height is None
+    assert with_z.stats.seconds.integration == 0.5 and a.stats.seconds.integration is None
+
+
+def test_reasons_are_one_enum():
+    assert [int(r) for r in Reason] == list(range(6))
+    assert len({r.label for r in Reason}) == len({r.colour for r in Reason}) == 6
+    codes = np.array([[0, 1, 2], [3, 4, 5]], dtype=np.uint8)
+    picture = reason_picture(codes)
+    for r in Reason:
+        np.testing.assert_allclose(picture[codes == r][0] * 255, r.colour, atol=1e-4)
+    assert reason_counts(codes) == {r.label: 1 for r in Reason}
+
+
+def test_sphere_normals_and_angular_error():
+    normals, rho = sphere_normals((41, 41), 20.0, 20.0, 15.0)
+    inside = rho < 1
+    np.testing.assert_allclose(np.linalg.norm(normals[inside], axis=-1), 1, atol=1e-12)
+    assert normals[20, 35].tolist() == [1.0, -0.0, 0.0]        # right rim: +x
+    assert normals[5, 20].tolist() == [0.0, 1.0, 0.0]          # top rim: +y (y up)
+    a = np.array([[1.0, 0, 0], [0, 0, 1], [0, 1, 0]])
+    b = np.array([[0, 1.0, 0], [0, 0, 1], [0, -1, 0]])
+    np.testing.assert_allclose(angular_error(a, b), [90, 0, 180])
+    tilt = np.array([np.sin(0.1), 0, np.cos(0.1)])
+    assert angular_error(tilt, [0, 0, 1]) == pytest.approx(np.degrees(0.1))
+    assert np.isnan(angular_error([np.nan, 0, 1], [0, 0, 1]))
+
+
+def test_gauge_and_synthetic_sphere_share_the_formula():
+    gauge = colorps.Gauge.from_sphere((60, 60), 29.5, 29.5, 25)
+    ball = synth.sphere_surface(60, 25)
+    np.testing.assert_allclose(gauge.normals[gauge.mask], ball.normals[gauge.mask], atol=1e-6)
+
+
+def test_every_sample_file_is_package_data():
+    """``pip install .`` ships the demo's sample: every file matches a package-data glob."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    globs = config["tool"]["setuptools"]["package-data"]["colorps.sample"]
+    assert "colorps.sample" in config["tool"]["setuptools"]["packages"]
+    files = [p.name for p in sample_folder().iterdir() if p.is_file() and p.suffix != ".py"]
+    assert len(files) >= 20
+    unshipped = [f for f in files if not any(fnmatch.fnmatch(f, g) for g in globs)]
+    assert not unshipped
+
+
+def test_demo_runs_from_any_folder(tmp_path, monkeypatch, capsys):
+    from colorps.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", "--out", "demo-out"]) == 0
+    text = capsys.readouterr().out
+    assert "42804 of 42804 scene pixels solved" in text
+    median = float(text.split("median ")[1].split(",")[0])
+    assert median < 0.5  # degrees, against the sample's ground truth
+    assert (tmp_path / "demo-out" / "normal.exr").exists()
