@@ -602,21 +602,30 @@ def _lookup_one(query, low, high, grid, eager):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _lookup_chunk(queries, first, grid, low, high, out_row, out_dist, out_buckets,
-                  out_tests):
-    """Look up the rows of ``queries`` (padded like the entries) into outputs
-    ``first``, ``first + 1``, ... (one thread's unit of work).
+def _lookup_chunk(queries, first, stop, grid, low, high, padded, out_row, out_dist,
+                  out_buckets, out_tests):
+    """Look up queries first .. stop - 1 into the outputs (one thread's unit of work).
+
+    ``low``, ``high`` are scratch for a query's sketch intervals and ``padded``
+    a zero row as wide as the entries, into which each query is copied when
+    the entries are padded (copying a whole chunk at once instead measured
+    the same within noise).
 
     Compiled without numba's reference counting (``_nrt=False``): every
     attribute access on ``grid`` that yields an array would otherwise count a
     reference up and down (two atomic operations), and that made lookups
     1.4-1.8x slower (measured). Nothing here allocates.
     """
+    dims = queries.shape[1]
     eager = False
-    for r in range(queries.shape[0]):
-        search, sketched = _lookup_one(queries[r], low, high, grid, eager)
+    for q in range(first, stop):
+        query = queries[q]
+        if padded.shape[0] > dims:
+            for k in range(dims):
+                padded[k] = query[k]
+            query = padded
+        search, sketched = _lookup_one(query, low, high, grid, eager)
         eager = sketched  # neighbours tend to need the same work
-        q = first + r
         out_row[q] = search.best
         out_dist[q] = np.sqrt(search.dmin2)
         out_buckets[q] = search.buckets
@@ -632,22 +641,16 @@ def lookup(queries, plane, entries, cells, buckets, sketch, blocks, plan, out_ro
     take flat tuples only, not tuples of tuples. The outputs (row in storage
     order, distance, buckets examined b and full distances d per query) are
     plain arrays: with numba 0.68 writes to arrays held in a tuple were lost
-    in a parallel loop. Each chunk of ``QUERY_CHUNK`` queries gets its scratch
-    space (a query's sketch intervals) and, when entries are zero-padded, a
-    padded copy of its queries.
+    in a parallel loop. Each chunk of ``QUERY_CHUNK`` queries allocates its
+    scratch space once.
     """
-    n_queries, dims = queries.shape
+    n_queries = queries.shape[0]
     n_chunks = (n_queries + QUERY_CHUNK - 1) // QUERY_CHUNK
-    width = entries.values.shape[1]
     for chunk in prange(n_chunks):
         grid = GridData(plane, entries, cells, buckets, sketch, blocks, plan)
         low = np.zeros(SKETCH_LANES, dtype=np.float32)
         high = np.zeros(SKETCH_LANES, dtype=np.float32)
+        padded = np.zeros(entries.values.shape[1], dtype=np.float32)  # padding stays 0
         first = chunk * QUERY_CHUNK
-        stop = min(first + QUERY_CHUNK, n_queries)
-        part = queries[first:stop]
-        if width > dims:
-            part = np.zeros((stop - first, width), dtype=np.float32)  # padding stays 0
-            part[:, :dims] = queries[first:stop]
-        _lookup_chunk(part, first, grid, low, high, out_row, out_dist, out_buckets,
-                      out_tests)
+        _lookup_chunk(queries, first, min(first + QUERY_CHUNK, n_queries), grid, low, high,
+                      padded, out_row, out_dist, out_buckets, out_tests)

@@ -1,5 +1,6 @@
 """The ``colorps`` command line: parses arguments and calls the library."""
 
+
 from __future__ import annotations
 
 import argparse
@@ -13,6 +14,8 @@ from . import __version__
 from .errors import ColorPSError
 from .options import FLOAT_DARK_LEVEL, Options
 from .pipeline import integrate_file, reconstruct_files
+
+__all__ = ["main", "build_parser"]
 
 
 class _FORMATTER(argparse.HelpFormatter):
@@ -101,6 +104,7 @@ def _shown(value) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``colorps`` argument parser (sub-commands reconstruct, integrate, demo, synth)."""
     parser = argparse.ArgumentParser(
         prog="colorps", description="Gauge-based colour photometric stereo: normals, "
         "intrinsic colour and match quality from a scene stack and a gauge stack.")
@@ -202,6 +206,11 @@ def _warning_line(message, category, filename, lineno, line=None):
 
 
 def main(argv=None) -> int:
+    """Run ``colorps`` with ``argv`` (default: sys.argv); return the exit code.
+
+    0 on success, 1 for an error colorps reports (one line on stderr), 2 for
+    malformed arguments, 130 when interrupted.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "reconstruct" and args.mesh and not args.height:

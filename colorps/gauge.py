@@ -16,7 +16,28 @@ import numpy as np
 from .errors import GaugeError, InputError
 from .geometry import sphere_normals
 
-__all__ = ["Gauge", "find_sphere", "parse_albedo"]
+__all__ = ["Gauge", "find_sphere", "parse_albedo", "MIN_RADIUS"]
+
+# ---------------------------------------------------------------- tuning
+#: Smallest usable sphere radius (pixels).
+MIN_RADIUS = 8.0
+#: Pixels closer than max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION r) to the rim are
+#: left out of the table: the normal turns fastest there and pixels mix sphere
+#: and background.
+RIM_MARGIN_PX = 2.0
+RIM_MARGIN_FRACTION = 0.02
+#: find_sphere: the sphere is segmented at SEGMENT_LEVEL of the bright level
+#: (the BRIGHT_PERCENTILE of the summed images), its outline needs at least
+#: MIN_OUTLINE_POINTS points, and a circle fitted by RANSAC (inliers within
+#: RANSAC_RESIDUAL_PX, RANSAC_TRIALS trials) must explain MIN_INLIER_FRACTION of
+#: the outline and the region's area within AREA_TOLERANCE.
+BRIGHT_PERCENTILE = 99.5
+SEGMENT_LEVEL = 0.05
+MIN_OUTLINE_POINTS = 20
+RANSAC_RESIDUAL_PX = 1.0
+RANSAC_TRIALS = 200
+MIN_INLIER_FRACTION = 0.8
+AREA_TOLERANCE = 0.15
 
 
 def parse_albedo(albedo, bands: int) -> np.ndarray:
@@ -79,7 +100,7 @@ class Gauge:
         albedo : float or (c,) array_like
         rim_margin : float, optional
             Pixels closer than this to the rim are left out (pixels; default
-            ``max(2, 0.02 * radius)``).
+            ``max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * radius)``).
 
         Raises
         ------
@@ -96,10 +117,11 @@ class Gauge:
             raise GaugeError(
                 f"sphere: circle at ({cx:g}, {cy:g}) with radius {radius:g} is partly "
                 f"outside the {w}x{h} gauge image")
-        if radius < 8:
+        if radius < MIN_RADIUS:
             raise GaugeError(f"sphere: radius {radius:g} px is too small for a useful "
-                             f"table (need at least 8 px; 100+ px recommended)")
-        margin = max(2.0, 0.02 * radius) if rim_margin is None else float(rim_margin)
+                             f"table (need at least {MIN_RADIUS:g} px; 100+ px recommended)")
+        margin = (max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * radius) if rim_margin is None
+                  else float(rim_margin))
         normals, rho = sphere_normals((h, w), cx, cy, radius)
         mask = rho <= 1.0 - margin / radius
         normals[~mask] = 0.0
@@ -138,10 +160,10 @@ def find_sphere(stack) -> tuple[float, float, float]:
     if data.ndim != 4:
         raise InputError(f"gauge stack: expected (m, H, W, c), got shape {data.shape}")
     total = np.nan_to_num(data.sum(axis=(0, 3)), nan=0.0, posinf=0.0)
-    bright = np.percentile(total, 99.5)
+    bright = np.percentile(total, BRIGHT_PERCENTILE)
     if not bright > 0:
         raise GaugeError("sphere auto: the gauge images are black; cannot find the sphere")
-    level = 0.05 * bright
+    level = SEGMENT_LEVEL * bright
     labels = measure.label(total > level)
     if labels.max() == 0:
         raise GaugeError("sphere auto: no bright region found in the gauge images")
@@ -150,10 +172,11 @@ def find_sphere(stack) -> tuple[float, float, float]:
     # Subpixel boundary of the region, on the image masked to it.
     contours = measure.find_contours(np.where(region, total, 0.0), level)
     points = max(contours, key=len)[:, ::-1]  # (row, col) -> (x, y)
-    if len(points) < 20:
+    if len(points) < MIN_OUTLINE_POINTS:
         raise GaugeError("sphere auto: the bright region is too small to be a gauge sphere")
     model, inliers = measure.ransac(points, measure.CircleModel, min_samples=3,
-                                    residual_threshold=1.0, max_trials=200, rng=0)
+                                    residual_threshold=RANSAC_RESIDUAL_PX,
+                                    max_trials=RANSAC_TRIALS, rng=0)
     if model is None or inliers is None:
         raise GaugeError("sphere auto: no circle fits the gauge's outline")
     if hasattr(model, "center"):  # scikit-image >= 0.26
@@ -161,7 +184,7 @@ def find_sphere(stack) -> tuple[float, float, float]:
     else:
         cx, cy, r = (float(v) for v in model.params)
     area_ratio = region.sum() / (np.pi * r * r)
-    if inliers.mean() < 0.8 or not 0.85 < area_ratio < 1.15:
+    if inliers.mean() < MIN_INLIER_FRACTION or abs(area_ratio - 1.0) >= AREA_TOLERANCE:
         raise GaugeError(
             f"sphere auto: no convincing circle (best fit ({cx:.1f}, {cy:.1f}) r={r:.1f} "
             f"explains {inliers.mean():.0%} of the outline, region/circle area "

@@ -36,6 +36,7 @@ from .errors import InputError
 
 __all__ = ["integrate", "slopes", "weights_from_quality", "METHODS"]
 
+#: Names of the integration methods of :func:`integrate`.
 METHODS = ("poisson", "dct")
 
 

@@ -33,6 +33,7 @@ from .options import FLOAT_DARK_LEVEL
 __all__ = ["read_image", "read_stack", "read_mask", "write_image", "expand_paths",
            "srgb_decode", "srgb_encode", "input_levels", "LossyInputWarning", "Encoding"]
 
+#: How stored pixel values map to linear light.
 Encoding = Literal["auto", "linear", "srgb"]
 _INTEGER_TYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32")
 _MAX_CODE = {"uint8": 255, "int8": 127, "uint16": 65535, "int16": 32767,

@@ -12,6 +12,7 @@ from .io import atomic_target, srgb_encode
 
 __all__ = ["height_mesh", "write_mesh", "MESH_FORMATS"]
 
+#: Mesh file formats (extensions) that :func:`write_mesh` writes.
 MESH_FORMATS = ("ply", "obj")
 
 

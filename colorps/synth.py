@@ -30,6 +30,7 @@ __all__ = [
     "render", "BRDFS", "mixed_lights", "write_synthetic",
 ]
 
+#: Names of the reflectance models :func:`render` knows.
 BRDFS = ("lambert", "oren-nayar")
 
 
