@@ -12,6 +12,7 @@ import numpy as np
 
 from . import __version__
 from .errors import ColorPSError
+from .gauge import DEFAULT_ALBEDO
 from .options import FLOAT_DARK_LEVEL, Options
 from .pipeline import integrate_file, reconstruct_files
 
@@ -119,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="gauge images under the same lights, same order")
     rec.add_argument("--sphere", type=_sphere, required=True, metavar="auto|CX,CY,R",
                      help="gauge sphere in gauge-image pixels, or 'auto' to find it")
-    rec.add_argument("--gauge-albedo", type=_albedo, default=1.0, metavar="A|R,G,B",
+    rec.add_argument("--gauge-albedo", type=_albedo, default=DEFAULT_ALBEDO, metavar="A|R,G,B",
                      help="albedo of the gauge, one value or one per band")
     rec.add_argument("--out", required=True, metavar="DIR", help="output folder")
     rec.add_argument("--mask", metavar="FILE", help="scene mask image (non-zero = solve)")

@@ -16,7 +16,10 @@ import numpy as np
 from .errors import GaugeError, InputError
 from .geometry import sphere_normals
 
-__all__ = ["Gauge", "find_sphere", "parse_albedo", "MIN_RADIUS"]
+__all__ = ["Gauge", "find_sphere", "parse_albedo", "DEFAULT_ALBEDO", "MIN_RADIUS"]
+
+#: Albedo of a gauge when none is given: a white gauge gives absolute albedo.
+DEFAULT_ALBEDO = 1.0
 
 # ---------------------------------------------------------------- tuning
 #: Smallest usable sphere radius (pixels).
@@ -71,7 +74,7 @@ class Gauge:
 
     normals: np.ndarray
     mask: np.ndarray
-    albedo: object = 1.0
+    albedo: object = DEFAULT_ALBEDO
     sphere: tuple[float, float, float] | None = None
 
     def __post_init__(self):
@@ -88,7 +91,7 @@ class Gauge:
 
     @classmethod
     def from_sphere(cls, shape: tuple[int, int], cx: float, cy: float, radius: float,
-                    albedo=1.0, *, rim_margin: float | None = None) -> "Gauge":
+                    albedo=DEFAULT_ALBEDO, *, rim_margin: float | None = None) -> "Gauge":
         """A sphere gauge of centre (cx, cy) and radius ``radius`` (pixels).
 
         Parameters

@@ -14,6 +14,7 @@ from typing import Literal, Sequence
 
 from . import __version__
 from .errors import InputError
+from .gauge import DEFAULT_ALBEDO
 from .options import Options
 from .reconstruct import Reconstruction
 
@@ -22,7 +23,7 @@ __all__ = ["reconstruct_files", "integrate_file"]
 
 def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str | Sequence[str],
                       sphere: Literal["auto"] | tuple[float, float, float], out, *,
-                      gauge_albedo=1.0, mask_path=None, options: Options | None = None,
+                      gauge_albedo=DEFAULT_ALBEDO, mask_path=None, options: Options | None = None,
                       overwrite: bool = False, progress: bool = True) -> Reconstruction:
     """Read scene and gauge stacks, reconstruct, and write the output folder.
 

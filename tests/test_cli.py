@@ -5,7 +5,7 @@ import sys
 import numpy as np
 import pytest
 
-from colorps import __version__
+from colorps import __version__, angular_error
 from colorps.cli import main
 from colorps.io import read_image, write_image
 from colorps.outputs import OUTPUT_FILES
@@ -37,7 +37,7 @@ def test_reconstruct_writes_every_output(sample, tmp_path):
     assert names == ["X", "Y", "Z"] and normals.shape == (64, 64, 3)
     truth, _ = read_image(sample[0] / "truth_normal.exr")
     mask = read_image(sample[0] / "mask.png", "linear")[0][..., 0] > 0.5
-    err = np.degrees(np.arccos(np.clip((normals[mask] * truth[mask]).sum(-1), -1, 1)))
+    err = angular_error(normals[mask], truth[mask])
     assert err.mean() < 1.0
     albedo, albedo_names = read_image(out / "albedo.exr")
     assert albedo_names == ["R", "G", "B"]

@@ -1,14 +1,13 @@
 import numpy as np
 import pytest
 
-from colorps import BucketGrid, Gauge, InputError, compute_signatures, reconstruct, synth
+from colorps import (BucketGrid, Gauge, InputError, angular_error, compute_signatures,
+                     reconstruct, synth)
 from colorps.reconstruct import GaugeWarning
 
 GAUGE_R = 150.0
 
 
-def angular_error(a, b):
-    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
 
 
 def lit_by_all(surface, lighting):

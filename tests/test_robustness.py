@@ -12,15 +12,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from colorps import Gauge, ImageReadError, reconstruct, synth
+from colorps import Gauge, ImageReadError, angular_error, reconstruct, synth
 from colorps.cli import main
 from colorps.io import LossyInputWarning, read_image, write_image
 
 GAUGE_R = 120.0
 
 
-def angular_error(a, b):
-    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
 
 
 def gauge_for(lighting, radius=GAUGE_R, **render):
