@@ -78,6 +78,26 @@ def _or_words(convert, **words):
     return parse
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (np.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a value >= 0, got {text!r}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return n
+
+
 def _positive_int(text: str) -> int:
     try:
         n = int(text)
@@ -155,10 +175,33 @@ def build_parser() -> argparse.ArgumentParser:
                           "below V sqrt(m) are too dark; auto: 2 codes of integer files, "
                           f"{FLOAT_DARK_LEVEL:.2g} for float files "
                           f"(default: {_shown(_DEFAULTS.dark_level)})")
+    rec.add_argument("--read-noise", type=_or_words(_non_negative_float, auto="auto"),
+                     default=_DEFAULTS.read_noise, metavar="V|auto",
+                     help="noise model: read-noise floor of one measurement (linear); "
+                          "auto: fitted to the gauge's pixel scatter "
+                          f"(default: {_shown(_DEFAULTS.read_noise)})")
+    rec.add_argument("--gain", type=_or_words(_non_negative_float, auto="auto"),
+                     default=_DEFAULTS.gain, metavar="G|auto",
+                     help="noise model: shot-noise variance per unit linear signal; "
+                          f"auto: fitted to the gauge (default: {_shown(_DEFAULTS.gain)})")
+    rec.add_argument("--no-band-weights", dest="band_weights", action="store_false",
+                     help="colour mode: weigh every band alike, however dark")
+    rec.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
+                     help="do not re-solve shadowed or highlighted pixels from the "
+                          "remaining lights")
+    rec.add_argument("--max-dropped-lights", type=_non_negative_int,
+                     default=_DEFAULTS.max_dropped_lights, metavar="K",
+                     help="most lights dropped from one pixel (at least 3 remain)")
+    rec.add_argument("--max-residual", type=_or_words(_positive_float, none=None),
+                     default=_DEFAULTS.max_residual, metavar="R|none",
+                     help="largest match residual of a solved pixel, in units of the "
+                          "noise model's expected residual (quality.exr); worse matches "
+                          "are 'no good match' "
+                          f"(default: {_shown(_DEFAULTS.max_residual)})")
     rec.add_argument("--max-distance", type=_or_words(_positive_float, none=None),
                      default=_DEFAULTS.max_distance, metavar="D|none",
-                     help="largest match distance (per band) of a solved pixel; worse "
-                          "matches are reported as 'no good match' "
+                     help="also refuse pixels whose plain signature distance per band "
+                          "exceeds D (colorps 0.1's threshold) "
                           f"(default: {_shown(_DEFAULTS.max_distance)})")
     rec.add_argument("--no-height", dest="height", action="store_false",
                      help="skip the height map, relief and overview pictures")
@@ -227,8 +270,10 @@ def main(argv=None) -> int:
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s.solved} of {s.pixels} pixels "
-                      f"(table {s.table_size}, grid N={s.grid_n}, "
-                      f"{s.seconds.total:.2f} s); results in {args.out}/")
+                      f"({s.solved_from_light_subset} from a light subset; table "
+                      f"{s.table_size}, grid N={s.grid_n}, median residual "
+                      f"{s.residual_median or 0:.2f}, {s.seconds.total:.2f} s); results in "
+                      f"{args.out}/")
         elif args.command == "integrate":
             z = integrate_file(args.normals, args.out, mask_path=args.mask,
                                weights_path=args.weights, method=args.method, mesh=args.mesh,

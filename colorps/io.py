@@ -31,7 +31,8 @@ from .errors import ImageReadError, InputError, OutputError
 from .options import FLOAT_DARK_LEVEL
 
 __all__ = ["read_image", "read_stack", "read_mask", "write_image", "expand_paths",
-           "srgb_decode", "srgb_encode", "input_levels", "LossyInputWarning", "Encoding"]
+           "srgb_decode", "srgb_encode", "input_levels", "noise_base", "LossyInputWarning",
+           "Encoding"]
 
 #: How stored pixel values map to linear light.
 Encoding = Literal["auto", "linear", "srgb"]
@@ -103,6 +104,25 @@ def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float
     if encoding in ("auto", "srgb"):
         levels = srgb_decode(levels)
     return float(levels[0]), float(levels[1])
+
+
+def noise_base(path, encoding: Encoding = "auto"):
+    """The :class:`~colorps.noise.NoiseModel` of a file's pixel type (quantisation
+    only: read noise and gain 0, to be fitted or given)."""
+    from .noise import NoiseModel
+
+    inp = _open_input(Path(path))
+    try:
+        pixel_type = str(inp.spec().format)
+    finally:
+        inp.close()
+    if pixel_type in _INTEGER_TYPES:
+        linear = encoding == "linear"
+        return NoiseModel(read=0.0, gain=0.0, pixel_type="int",
+                          top_code=_MAX_CODE[pixel_type],
+                          encoding="linear" if linear else "srgb")
+    return NoiseModel(read=0.0, gain=0.0, pixel_type="half" if pixel_type == "half"
+                      else "float")
 
 
 def srgb_decode(values) -> np.ndarray:

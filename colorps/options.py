@@ -69,9 +69,25 @@ class Options:
         Measurements at or above this linear value are clipped. "auto": the
         top code of an integer file, no clipping for floating-point files and
         arrays. None: nothing is clipped.
+    read_noise, gain : float or "auto"
+        The noise model (:mod:`colorps.noise`): read-noise floor (linear) and
+        shot-noise variance per unit signal. "auto": fitted to the gauge's
+        pixel-to-pixel scatter.
+    band_weights : bool
+        Colour mode: weight each band's signature by its signal-to-noise ratio
+        (powers of two), dropping bands far below the brightest one.
+    light_subsets : bool
+        Re-solve pixels whose match leaves a few measurements far outside the
+        noise (cast shadows, highlights) from the remaining lights.
+    max_dropped_lights : int
+        At most this many lights are dropped from a pixel; at least 3 remain.
+    max_residual : float or None
+        Largest match residual (``quality``, in units of its expected value
+        under the noise model) of a solved pixel; worse matches are "no good
+        match". None keeps every match.
     max_distance : float or None
-        Largest match distance per band (``quality``) of a solved pixel; worse
-        matches are "no good match". None keeps every match.
+        Largest plain signature distance per band of a solved pixel (the
+        unweighted distance of colorps 0.1). None: no such limit.
     encoding : {"auto", "linear", "srgb"}
         Files only: how stored values map to linear light ("auto": integer
         formats sRGB, floating-point formats linear).
@@ -84,8 +100,8 @@ class Options:
     Examples
     --------
     >>> from colorps import Options
-    >>> Options().max_distance, Options(mode="mono").replace(threads=1).threads
-    (0.1, 1)
+    >>> Options().max_residual, Options(mode="mono").replace(threads=1).threads
+    (10.0, 1)
     """
 
     mode: Literal["colour", "mono"] = "colour"
@@ -95,7 +111,13 @@ class Options:
     threads: int | None = None
     dark_level: float | Literal["auto"] = "auto"
     clip_level: float | Literal["auto"] | None = "auto"
-    max_distance: float | None = 0.1
+    read_noise: float | Literal["auto"] = "auto"
+    gain: float | Literal["auto"] = "auto"
+    band_weights: bool = True
+    light_subsets: bool = True
+    max_dropped_lights: int = 2
+    max_residual: float | None = 10.0
+    max_distance: float | None = None
     encoding: Literal["auto", "linear", "srgb"] = "auto"
     height: bool = True
     mesh: Literal["ply", "obj", "both"] | None = None
@@ -118,6 +140,18 @@ class Options:
         if self.clip_level not in ("auto", None) and not _is_positive(self.clip_level):
             raise InputError(f"clip_level: expected a linear value > 0, 'auto' or None, "
                              f"got {self.clip_level!r}")
+        if self.read_noise != "auto" and not (_is_positive(self.read_noise)
+                                              or self.read_noise == 0):
+            raise InputError(f"read_noise: expected a linear value >= 0 or 'auto', "
+                             f"got {self.read_noise!r}")
+        if self.gain != "auto" and not (_is_positive(self.gain) or self.gain == 0):
+            raise InputError(f"gain: expected a value >= 0 or 'auto', got {self.gain!r}")
+        if not _is_count(self.max_dropped_lights, 0):
+            raise InputError(f"max_dropped_lights: expected an integer >= 0, "
+                             f"got {self.max_dropped_lights!r}")
+        if self.max_residual is not None and not _is_positive(self.max_residual):
+            raise InputError(f"max_residual: expected a value > 0 or None, "
+                             f"got {self.max_residual!r}")
         if self.max_distance is not None and not _is_positive(self.max_distance):
             raise InputError(f"max_distance: expected a value > 0 or None, "
                              f"got {self.max_distance!r}")

@@ -8,11 +8,16 @@ normal.exr      float32 camera-space unit normals, channels X, Y, Z; NaN where
 normal.png      8-bit preview (n + 1) / 2 in R, G, B; black where not solved
 albedo.exr      float32 linear albedo, one channel per input band (input names)
 albedo.png      sRGB preview (colour-science), black where not solved
-quality.exr     float32 match distance (signature units); NaN where not solved
+quality.exr     float32 match residual in noise units (about 1 = explained,
+                see :mod:`colorps.residuals`); NaN where no match was tried
 invalid.png     why pixels are not solved, one colour per
                 :class:`~colorps.Reason`: black solved, grey background, blue
                 too dark, yellow clipped, magenta invalid value (NaN, Inf,
-                negative), red no good match
+                negative), red no good match, teal solved from a light subset
+lights.png      lights dropped per pixel (cast shadows, highlights): black
+                none, then :data:`DROPPED_COLOURS` for 1, 2, 3+ lights
+lights.exr      float32 bit mask of the dropped lights (bit i: image i),
+                exact up to 24 lights
 report.json     inputs, options, statistics, pixels by reason
 height.exr      float32 height in pixels (see :mod:`colorps.integrate`), when
                 the result has a height map
@@ -49,7 +54,9 @@ __all__ = ["OUTPUT_FILES", "HEIGHT_FILES", "MESH_FILES", "prepare_output_dir",
 
 #: Written by every reconstruction.
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
-                "invalid.png", "report.json")
+                "invalid.png", "lights.png", "lights.exr", "report.json")
+#: Colours (8-bit sRGB) of lights.png for 1, 2 and 3 or more dropped lights.
+DROPPED_COLOURS = ((90, 200, 255), (255, 170, 0), (255, 40, 200))
 #: Written when the result has a height map.
 HEIGHT_FILES = ("height.exr", "relief.png", "overview.png")
 #: Written when asked for, by kind.
@@ -195,6 +202,10 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report,
             p, srgb_encode(as_rgb(np.where(solved, result.albedo, 0.0))), dtype="uint8"),
         "quality.exr": lambda p: write_image(p, result.quality, channel_names=["Q"]),
         "invalid.png": lambda p: write_image(p, reason_picture(result.reason), dtype="uint8"),
+        "lights.png": lambda p: write_image(p, _dropped_picture(result.lights_dropped_count),
+                                            dtype="uint8"),
+        "lights.exr": lambda p: write_image(p, result.dropped_lights.astype(np.float32),
+                                            channel_names=["L"]),
     }
     z = result.height
     if z is not None:
@@ -215,6 +226,13 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report,
     writers["report.json"] = lambda p: p.write_text(
         json.dumps(doc, indent=2, default=_jsonable))
     return writers
+
+
+def _dropped_picture(count: np.ndarray) -> np.ndarray:
+    table = np.zeros((256, 3), dtype=np.float32)
+    for k, rgb in enumerate(DROPPED_COLOURS, start=1):
+        table[k:] = np.array(rgb) / 255.0
+    return table[count]
 
 
 def _write_mesh(height, colours, path) -> None:

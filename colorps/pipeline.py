@@ -55,7 +55,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
     """
     from .gauge import Gauge, find_sphere
     from .integrate import integrate, weights_from_quality
-    from .io import expand_paths, input_levels, read_mask, read_stack
+    from .io import expand_paths, input_levels, noise_base, read_mask, read_stack
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
 
@@ -77,7 +77,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
     mask = None if mask_path is None else read_mask(mask_path, scene.shape[1:3])
 
-    result = reconstruct(scene, gauge_stack, gauge, options, mask=mask, progress=progress)
+    result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
+                         noise=noise_base(scene_paths[0], options.encoding), progress=progress)
     if options.height:
         t0 = time.perf_counter()
         height = integrate(result.normals, result.solved,

@@ -8,11 +8,13 @@ code   member           name              meaning
 2      TOO_DARK         "too dark"        an OV norm at or below the dark threshold
 3      CLIPPED          "clipped"         a measurement at or above the clip level
 4      INVALID_VALUE    "invalid value"   a NaN, Inf or negative measurement
-5      NO_GOOD_MATCH    "no good match"   nearest gauge signature too far away
+5      NO_GOOD_MATCH    "no good match"   no light subset explains it within the noise
+6      SOLVED_FROM_...  "solved from a    solved from the remaining lights after
+       LIGHT_SUBSET     light subset"     dropping one or a few (shadow, highlight)
 =====  ===============  ================  =========================================
 
-When a pixel has several problems the larger code wins (a clipped and dark
-pixel is reported as clipped). ``invalid.png`` shows each reason in its
+Codes 0 and 6 are solved pixels. When an unsolved pixel has several problems
+the larger code wins (a clipped and dark pixel is reported as clipped). ``invalid.png`` shows each reason in its
 ``colour`` (8-bit sRGB).
 """
 
@@ -55,6 +57,7 @@ class Reason(enum.IntEnum):
     CLIPPED = 3, "clipped", (255, 220, 0)
     INVALID_VALUE = 4, "invalid value", (255, 0, 255)
     NO_GOOD_MATCH = 5, "no good match", (255, 40, 40)
+    SOLVED_FROM_LIGHT_SUBSET = 6, "solved from a light subset", (0, 150, 110)
 
 
 def reason_counts(reason: np.ndarray) -> dict[str, int]:

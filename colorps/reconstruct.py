@@ -27,17 +27,17 @@ import numpy as np
 from ._checks import check_stack
 from .errors import InputError
 from .gauge import Gauge, parse_albedo
-from .grid import BucketGrid
+from .matching import DROP_LEVEL, Capture, GroupResult, weight_levels
+from .noise import NoiseModel, estimate_noise
 from .options import FLOAT_DARK_LEVEL, MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason, reason_counts
+from .residuals import band_variance, light_residuals
 from .signatures import SignatureSet, compute_signatures, measurement_flags
 
 __all__ = ["Reconstruction", "ReconstructionStats", "MatchGroup", "Timings", "reconstruct",
            "GaugeWarning"]
 
 # ---------------------------------------------------------------- tuning
-#: Queries per call of the grid (one progress-bar step); bounds the scratch memory.
-LOOKUP_CHUNK = 1 << 18
 #: Side (pixels) of the tiles in which pixels are looked up. Neighbouring pixels
 #: look up the same gauge entries, which then stay in the CPU's caches: colour
 #: m = 30 lookups are ~18 % faster than row by row (docs/benchmarks.md).
@@ -51,6 +51,15 @@ MIN_TABLE_ENTRIES = 3
 #: Least squares albedo (some measurements unusable) needs the usable ones to
 #: carry at least this fraction of the gauge OV's energy; else NaN.
 MIN_ALBEDO_ENERGY = 0.01
+#: Light subsets: pixels whose residual (noise units) exceeds SUBSET_TRIGGER are
+#: re-matched without each of their lights in turn; the best is kept when its
+#: residual is at most SUBSET_GAIN of the old one. At least MIN_LIGHTS lights
+#: remain, and at most MAX_SUBSET_GROUPS tables are built per round (the
+#: largest groups first).
+SUBSET_TRIGGER = 3.0
+SUBSET_GAIN = 0.7
+MIN_LIGHTS = 3
+MAX_SUBSET_GROUPS = 128
 
 
 class GaugeWarning(UserWarning):
@@ -67,16 +76,19 @@ class MatchGroup:
         Signature bands matched (all bands unless some were unusable).
     table_size : int
         Gauge entries in the table (gauge pixels with those bands usable).
-    grid_n : int
-        Grid size N of its bucket grid.
+    grid_n : int or None
+        None when the group was small enough for brute force.
     pixels : int
         Scene pixels matched with it.
+    lights_dropped : tuple of int
+        Lights left out of the table (light subsets).
     """
 
     bands: tuple[int, ...]
     table_size: int
-    grid_n: int
+    grid_n: int | None
     pixels: int
+    lights_dropped: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -109,14 +121,26 @@ class ReconstructionStats:
         Every table built, full signature first.
     buckets_per_lookup, tests_per_lookup : float
         Mean buckets examined (b) and full distances computed (d) per lookup.
-    pixels, solved, solved_from_band_subset : int
+    pixels, solved, solved_from_band_subset, solved_from_light_subset : int
+    lights_dropped_per_pixel : dict of str to int
+        Solved pixels by number of lights dropped ("0", "1", ...).
+    dropped_per_light : list of dict
+        Per light: solved pixels that dropped it as darker than the match
+        (cast shadow) and as brighter (highlight, interreflection).
     pixels_by_reason : dict of str to int
         Keyed by :attr:`Reason.label`.
     clip_level : float or None
     dark_level : float
         Resolved levels (linear); ``dark_threshold`` = dark_level sqrt(m).
     dark_threshold : float
-    max_distance : float or None
+    noise : dict
+        The noise model (:class:`~colorps.noise.NoiseModel`).
+    model_scale : float
+        Median residual of the first matches when above 1 (model mismatch
+        every pixel shares); residuals are divided by it.
+    residual_median, residual_p95 : float or None
+        Of the matched pixels' ``quality``.
+    max_residual, max_distance : float or None
     gauge_usable_fraction : float
         Fraction of the gauge mask with every band usable.
     seconds : Timings
@@ -134,10 +158,18 @@ class ReconstructionStats:
     pixels: int
     solved: int
     solved_from_band_subset: int
+    solved_from_light_subset: int
+    lights_dropped_per_pixel: dict
+    dropped_per_light: list
     pixels_by_reason: dict
     clip_level: float | None
     dark_level: float
     dark_threshold: float
+    noise: dict
+    model_scale: float
+    residual_median: float | None
+    residual_p95: float | None
+    max_residual: float | None
     max_distance: float | None
     gauge_usable_fraction: float
     seconds: Timings
@@ -161,17 +193,19 @@ class Reconstruction:
         NaN where not solved, and in a band whose usable measurements cannot
         fix its scale (e.g. every lit measurement clipped).
     quality : (H, W) ndarray of float32
-        Match distance per band: the Euclidean distance between the scene
-        signature and the nearest gauge signature divided by sqrt(number of
-        bands matched), so mono and colour values compare (0 = perfectly
-        explained; 0.1 is about 6 degrees between the two OVs). NaN where no
-        match was attempted.
+        Residual of the match in units of its expected value under the noise
+        model (:mod:`colorps.residuals`): about 1 where the gauge explains
+        the pixel, far above for cast shadows, highlights or other materials.
+        NaN where no match was attempted.
     solved : (H, W) ndarray of bool
     reason : (H, W) ndarray of uint8
         Why a pixel is not solved: a :class:`~colorps.Reason` code.
     bands_used : (H, W) ndarray of uint8
         Bit k set when band k of the signature was matched (colour mode falls
         back to the valid bands of a pixel).
+    dropped_lights : (H, W) ndarray of uint64
+        Bit i set when light (image) i was left out of the pixel's match (a
+        cast shadow or highlight there); see :attr:`lights_dropped_count`.
     stats : ReconstructionStats
     height : (H, W) ndarray or None
         Height map (pixels), when integrated: see :meth:`with_height`.
@@ -183,6 +217,7 @@ class Reconstruction:
     solved: np.ndarray
     reason: np.ndarray
     bands_used: np.ndarray
+    dropped_lights: np.ndarray
     stats: ReconstructionStats
     height: np.ndarray | None = None
 
@@ -191,6 +226,11 @@ class Reconstruction:
             value = getattr(self, f.name)
             if isinstance(value, np.ndarray):
                 value.flags.writeable = False
+
+    @property
+    def lights_dropped_count(self) -> np.ndarray:
+        """(H, W) uint8 number of lights dropped from each pixel's match."""
+        return _popcount(self.dropped_lights).astype(np.uint8)
 
     def with_height(self, height: np.ndarray, seconds: float | None = None
                     ) -> "Reconstruction":
@@ -202,7 +242,8 @@ class Reconstruction:
 
 
 def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
-                mask=None, progress: bool = False, **changes) -> Reconstruction:
+                mask=None, noise: NoiseModel | None = None, progress: bool = False,
+                **changes) -> Reconstruction:
     """Recover normals and intrinsic colour of a scene from a gauge.
 
     Parameters
@@ -219,6 +260,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         :data:`~colorps.options.FLOAT_DARK_LEVEL`.
     mask : (H, W) array_like of bool, optional
         Scene pixels to solve (default: all).
+    noise : NoiseModel, optional
+        The data's pixel type and encoding (quantisation), and the read noise
+        and gain to start from (default: floating-point data). "auto" fields of
+        ``options`` are fitted to the gauge.
     progress : bool, optional
         Show a progress bar.
     **changes
@@ -267,23 +312,35 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         warnings.warn(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
                       "(clipped, too dark or invalid): check the gauge's exposure",
                       GaugeWarning, stacklevel=2)
+    model = _noise_model(gauge_stack, gauge, gauge_sig, options, noise)
+    capture = Capture(
+        scene_ov=_ov(scene_sig), scene_valid=scene_sig.band_valid,
+        gauge_ov=_ov(gauge_sig), gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
+        gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm)
     t_signatures = time.perf_counter() - t0
 
-    matches = _match(scene_sig, gauge_sig, gauge, mask, options, progress)
-    solved = matches.row >= 0
+    matches = _match(capture, mask, options, progress)
+    matched = matches.row >= 0
+    solved = matched.copy()
+    if options.max_residual is not None:
+        solved &= matches.quality <= options.max_residual
     if options.max_distance is not None:
-        solved &= matches.quality <= options.max_distance
-    normals = np.where(solved[..., None], matches.normals, np.float32(np.nan))
+        solved &= matches.distance <= options.max_distance
+    normals = np.full((h, w, 3), np.nan, dtype=np.float32)
+    normals[solved] = capture.gauge_normals[matches.row[solved]]
     albedo = np.full((h, w, c), np.nan, dtype=np.float32)
+    dropped_lights = _lights_of(matches.dropped[solved], m)  # (m, P)
     albedo[solved] = _albedo(scene[:, solved],
                              gauge_stack.reshape(m, -1, c)[:, matches.row[solved]],
-                             gauge_albedo, options.clip_level)
-    reason = _reasons(scene_sig, mask, solved, matched=matches.row >= 0)
+                             gauge_albedo, options.clip_level, excluded=dropped_lights)
+    reason = _reasons(scene_sig, mask, solved, matched, matches.dropped)
 
     n_bands = scene_sig.bands
     full = (1 << n_bands) - 1
-    n_matched = int(np.count_nonzero(matches.row >= 0))
-    full_grid = [g for g in matches.groups if g.bands == tuple(range(n_bands))]
+    n_matched = int(np.count_nonzero(matched))
+    full_grid = [g for g in matches.groups if g.bands == tuple(range(n_bands))
+                 and g.lights_dropped == () and g.grid_n is not None]
+    q = matches.quality[matched]
     stats = ReconstructionStats(
         images=m, bands=c, mode=options.mode, signature_dims=n_bands * m,
         table_size=int((gauge.mask & gauge_sig.valid).sum()),
@@ -293,15 +350,22 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         tests_per_lookup=matches.tests / n_matched if n_matched else 0.0,
         pixels=h * w, solved=int(solved.sum()),
         solved_from_band_subset=int((solved & (matches.bands_used != full)).sum()),
+        solved_from_light_subset=int((solved & (matches.dropped != 0)).sum()),
+        lights_dropped_per_pixel=_dropped_histogram(matches.dropped[solved]),
+        dropped_per_light=_dropped_per_light(matches, solved, m),
         pixels_by_reason=reason_counts(reason), clip_level=options.clip_level,
         dark_level=float(options.dark_level), dark_threshold=min_norm,
-        max_distance=options.max_distance, gauge_usable_fraction=usable_gauge,
+        noise=model.as_dict(), model_scale=matches.model_scale,
+        residual_median=float(np.median(q)) if q.size else None,
+        residual_p95=float(np.percentile(q, 95)) if q.size else None,
+        max_residual=options.max_residual, max_distance=options.max_distance,
+        gauge_usable_fraction=usable_gauge,
         seconds=Timings(signatures=t_signatures, grid=matches.seconds_grid,
                         lookup=matches.seconds_lookup,
                         total=time.perf_counter() - t_start),
     )
     return Reconstruction(normals, albedo, matches.quality, solved, reason,
-                          matches.bands_used, stats)
+                          matches.bands_used, matches.dropped, stats)
 
 
 # ---------------------------------------------------------------- steps
@@ -340,67 +404,214 @@ def _check_inputs(scene, gauge_stack, gauge: Gauge, mask, mode: str):
 
 @dataclass(frozen=True)
 class _Matches:
-    """Nearest gauge entry of every scene pixel, over its usable bands."""
+    """Nearest gauge entry of every scene pixel, over its usable bands and lights."""
 
-    normals: np.ndarray     # (H, W, 3) gauge normal of the match (NaN: none)
-    quality: np.ndarray     # (H, W) distance per band (NaN: no match attempted)
     row: np.ndarray         # (H, W) flat gauge pixel index of the match, -1: none
+    quality: np.ndarray     # (H, W) residual in noise units (NaN: no match attempted)
+    distance: np.ndarray    # (H, W) plain signature distance per band
     bands_used: np.ndarray  # (H, W) bit mask of the bands matched
+    dropped: np.ndarray     # (H, W) uint64 bit mask of the lights dropped
+    brighter: np.ndarray    # (H, W) uint64: of those, the ones brighter than the match
     groups: tuple[MatchGroup, ...]
+    model_scale: float
     buckets: float          # summed over lookups
     tests: float
     seconds_grid: float
     seconds_lookup: float
 
 
-def _match(scene_sig: SignatureSet, gauge_sig: SignatureSet, gauge: Gauge, mask: np.ndarray,
-           options: Options, progress: bool) -> _Matches:
-    """Match every masked pixel with the gauge, one table per subset of usable bands.
+def _match(capture: Capture, mask: np.ndarray, options: Options,
+           progress: bool) -> _Matches:
+    """Match every masked pixel: one table per (bands, weights) group, then light subsets.
 
-    Pixels with every band usable are matched first, on the full signature;
-    the others on the bands they have, when those still fix a normal
-    (bands x (m - 1) >= 2) and the gauge has a table for them.
+    Pixels with every band usable are matched on the full signature, the
+    others on the bands they have when those still fix a normal (bands x
+    (m - 1) >= 2). In colour mode with ``band_weights`` each band is weighted
+    by its signal-to-noise ratio (:func:`colorps.matching.weight_levels`).
+    The residuals are then divided by the capture's model scale, and, with
+    ``light_subsets``, pixels left far outside the noise are re-matched
+    without their most deviant light (:func:`_light_subsets`).
     """
+    from tqdm.auto import tqdm
+
     h, w = mask.shape
-    m, n_bands = scene_sig.images, scene_sig.bands
-    band_bits = 1 << np.arange(n_bands)
-    scene_code = (scene_sig.band_valid * band_bits).sum(axis=-1)
-    gauge_code = (gauge_sig.band_valid * band_bits).sum(axis=-1)
-    normals = np.full((h, w, 3), np.nan, dtype=np.float32)
-    quality = np.full((h, w), np.nan, dtype=np.float32)
-    row = np.full((h, w), -1, dtype=np.int64)
-    bands_used = np.zeros((h, w), dtype=np.uint8)
-    groups, buckets, tests, t_grid, t_lookup = [], 0.0, 0.0, 0.0, 0.0
-    for code in sorted(np.unique(scene_code[mask]), reverse=True):
-        chosen = tuple(k for k in range(n_bands) if code >> k & 1)
-        if len(chosen) * (m - 1) < 2:
-            continue  # these bands cannot fix a normal: reported by _reasons
-        table_px = gauge.mask & ((gauge_code & code) == code)
-        if table_px.sum() < MIN_TABLE_ENTRIES:
-            continue
-        pixels = mask & (scene_code == code)
-        cols = np.concatenate([np.arange(k * m, (k + 1) * m) for k in chosen])
-        t0 = time.perf_counter()
-        table = np.ascontiguousarray(gauge_sig.signatures[table_px][:, cols])
-        ys, xs = _tile_order(pixels)
-        queries = np.ascontiguousarray(scene_sig.signatures[ys, xs][:, cols])
-        sample = queries[:: max(1, len(queries) // AUTO_N_SAMPLE)]
-        grid = BucketGrid(table, options.grid_n,
-                          sample=sample if options.grid_n == "auto" else None)
-        t_grid += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        rows, dist, b_sum, d_sum = _lookup(grid, queries, options.threads, progress,
-                                           f"matching ({len(chosen)} band(s))")
-        t_lookup += time.perf_counter() - t0
-        buckets += b_sum
-        tests += d_sum
-        normals[ys, xs] = gauge.normals[table_px][rows]
-        quality[ys, xs] = dist / np.sqrt(len(chosen))
-        row[ys, xs] = np.flatnonzero(table_px)[rows]
-        bands_used[pixels] = code
-        groups.append(MatchGroup(chosen, int(table.shape[0]), grid.n, int(ys.size)))
-    return _Matches(normals, quality, row, bands_used, tuple(groups), buckets, tests,
-                    t_grid, t_lookup)
+    m, n_bands = capture.images, capture.bands
+    ys, xs = _tile_order(mask)
+    valid = capture.scene_valid[ys, xs]
+    levels = np.zeros(valid.shape, dtype=np.int8)
+    if options.band_weights and n_bands > 1:
+        ov = capture.scene_ov[ys, xs]
+        norms = np.sqrt((ov.astype(np.float64) ** 2).sum(axis=-1))
+        levels = weight_levels(norms, band_variance(ov, capture.model), valid)
+        kept = valid & (levels > DROP_LEVEL)
+        fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
+        valid = np.where(fixes_normal[:, None], kept, valid)
+        levels = np.where(valid, np.maximum(levels, DROP_LEVEL + 1), 0).astype(np.int8)
+    code = (valid * (1 << np.arange(n_bands))).sum(axis=-1)
+    state = _MatchState.empty(h, w, n_bands)
+    state.levels[ys, xs] = levels
+    keys, inverse = np.unique(np.column_stack([code, levels]), axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(-np.bincount(inverse), kind="stable")
+    with tqdm(total=len(ys), desc="matching", unit="px", unit_scale=True,
+              disable=not progress, leave=False) as bar:
+        for g in order:
+            bands = tuple(k for k in range(n_bands) if keys[g, 0] >> k & 1)
+            pick = inverse == g
+            bar.update(int(pick.sum()))
+            if len(bands) * (m - 1) < 2:
+                continue  # these bands cannot fix a normal: reported by _reasons
+            gy, gx = ys[pick], xs[pick]
+            result = capture.match(gy, gx, bands, tuple(int(v) for v in keys[g, 1:][list(bands)]),
+                                   tuple(range(m)), grid_n=options.grid_n,
+                                   threads=options.threads, sample_size=AUTO_N_SAMPLE)
+            state.record(gy, gx, result, bands, keys[g, 0], ())
+    matched = state.row >= 0
+    model_scale = float(np.sqrt(max(1.0, np.median(state.quality[matched] ** 2))))
+    if not matched.any():
+        model_scale = 1.0
+    state.quality[matched] /= model_scale
+    if options.light_subsets and m >= MIN_LIGHTS + 1:
+        _light_subsets(capture, state, options, model_scale)
+    return state.result(model_scale)
+
+
+@dataclass
+class _MatchState:
+    """Per-pixel matches while they are being improved (mutable, private)."""
+
+    row: np.ndarray
+    quality: np.ndarray
+    distance: np.ndarray
+    bands_used: np.ndarray
+    levels: np.ndarray
+    dropped: np.ndarray
+    brighter: np.ndarray
+    groups: list
+    totals: np.ndarray  # buckets, tests, seconds grid, seconds lookup
+
+    @classmethod
+    def empty(cls, h: int, w: int, n_bands: int) -> "_MatchState":
+        return cls(row=np.full((h, w), -1, dtype=np.int64),
+                   quality=np.full((h, w), np.nan, dtype=np.float32),
+                   distance=np.full((h, w), np.nan, dtype=np.float32),
+                   bands_used=np.zeros((h, w), dtype=np.uint8),
+                   levels=np.zeros((h, w, n_bands), dtype=np.int8),
+                   dropped=np.zeros((h, w), dtype=np.uint64),
+                   brighter=np.zeros((h, w), dtype=np.uint64), groups=[],
+                   totals=np.zeros(4))
+
+    def record(self, ys, xs, result: GroupResult, bands, code, lights_dropped,
+               where=None) -> None:
+        """Keep a group's matches (only at ``where``, when given)."""
+        self.totals += (result.buckets, result.tests, result.seconds_grid,
+                        result.seconds_lookup)
+        self.groups.append(MatchGroup(tuple(int(k) for k in bands), result.table_size,
+                                      result.grid_n, int(len(ys)), tuple(lights_dropped)))
+        if where is not None:
+            ys, xs = ys[where], xs[where]
+            result = GroupResult(*(getattr(result, f)[where] if f in
+                                   ("rows", "residual", "distance") else getattr(result, f)
+                                   for f in GroupResult.__dataclass_fields__))
+        self.row[ys, xs] = result.rows
+        self.quality[ys, xs] = result.residual
+        self.distance[ys, xs] = result.distance
+        self.bands_used[ys, xs] = code
+
+    def result(self, model_scale: float) -> _Matches:
+        b, d, t_grid, t_lookup = self.totals
+        return _Matches(self.row, self.quality, self.distance, self.bands_used,
+                        self.dropped, self.brighter, tuple(self.groups), model_scale,
+                        b, d, t_grid, t_lookup)
+
+
+def _light_subsets(capture: Capture, state: _MatchState, options: Options,
+                   model_scale: float) -> None:
+    """Re-match pixels far outside the noise without the light that explains least.
+
+    A pixel whose residual exceeds SUBSET_TRIGGER is matched again once per
+    light it still uses, each time without that light (one table per light
+    subset, band subset and weights, built when first needed; tables of few
+    pixels are brute force). The best of these matches is kept when it lowers
+    the residual to at most SUBSET_GAIN of the old one; the dropped light is
+    "darker" (cast shadow) or "brighter" (highlight, interreflection) than the
+    new match predicts. This repeats up to ``max_dropped_lights`` times; at
+    least MIN_LIGHTS lights remain.
+    """
+    m, n_bands = capture.images, capture.bands
+    bits = np.uint64(1) << np.arange(m, dtype=np.uint64)
+    for _ in range(options.max_dropped_lights):
+        left = m - _popcount(state.dropped)
+        candidates = (state.row >= 0) & (state.quality > SUBSET_TRIGGER) & \
+            (left - 1 >= MIN_LIGHTS)
+        if not candidates.any():
+            return
+        ys, xs = _tile_order(candidates)
+        best_q = state.quality[ys, xs].copy()
+        best_light = np.full(len(ys), -1)
+        best_rows = np.full(len(ys), -1, dtype=np.int64)
+        best_distance = np.zeros(len(ys), dtype=np.float32)
+        dropped = state.dropped[ys, xs]
+        codes = state.bands_used[ys, xs].astype(np.uint64)
+        level_rows = state.levels[ys, xs].astype(np.int64)
+        tried = np.zeros((len(ys), m), dtype=bool)
+        for light in range(m):
+            tried[:, light] = (dropped & bits[light]) == 0
+        which_pixel, which_light = np.nonzero(tried)
+        keys, inverse = np.unique(
+            np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel],
+                             level_rows[which_pixel]]), axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        order = np.argsort(-np.bincount(inverse), kind="stable")[:MAX_SUBSET_GROUPS]
+        for g in order:
+            pick = np.flatnonzero(inverse == g)
+            pixels = which_pixel[pick]
+            lights_kept = tuple(i for i in range(m) if not int(keys[g, 0]) >> i & 1)
+            band_tuple = tuple(k for k in range(n_bands) if int(keys[g, 1]) >> k & 1)
+            result = capture.match(ys[pixels], xs[pixels], band_tuple,
+                                   tuple(int(v) for v in keys[g, 2:][list(band_tuple)]),
+                                   lights_kept, grid_n=options.grid_n,
+                                   threads=options.threads, sample_size=AUTO_N_SAMPLE)
+            state.totals += (result.buckets, result.tests, result.seconds_grid,
+                             result.seconds_lookup)
+            residual = result.residual / model_scale
+            better = np.isfinite(residual) & (result.rows >= 0) & (residual < best_q[pixels])
+            chosen = pixels[better]
+            best_q[chosen] = residual[better]
+            best_light[chosen] = which_light[pick][better]
+            best_rows[chosen] = result.rows[better]
+            best_distance[chosen] = result.distance[better]
+        keep = (best_light >= 0) & (best_q <= SUBSET_GAIN * state.quality[ys, xs])
+        if not keep.any():
+            return
+        ky, kx, light = ys[keep], xs[keep], best_light[keep]
+        state.row[ky, kx] = best_rows[keep]
+        state.quality[ky, kx] = best_q[keep]
+        state.distance[ky, kx] = best_distance[keep]
+        state.dropped[ky, kx] |= bits[light]
+        # Darker or brighter than the new match predicts?
+        lights = (state.dropped[ky, kx][:, None] & bits) == 0
+        band_mask = ((state.bands_used[ky, kx][:, None] >> np.arange(n_bands)) & 1) == 1
+        z = light_residuals(capture.scene_ov[ky, kx],
+                            capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ky, kx]],
+                            lights, band_mask, capture.model)
+        brighter = z[np.arange(len(ky)), light] > 0
+        state.brighter[ky[brighter], kx[brighter]] |= bits[light[brighter]]
+        for subset in np.unique(state.dropped[ky, kx]):
+            count = int((state.dropped[ky, kx] == subset).sum())
+            state.groups.append(MatchGroup(
+                tuple(range(n_bands)), 0, None, count,
+                tuple(i for i in range(m) if int(subset) >> i & 1)))
+
+
+def _popcount(values: np.ndarray) -> np.ndarray:
+    """Number of set bits of uint64 values."""
+    v = values.astype(np.uint64)
+    count = np.zeros(v.shape, dtype=np.int64)
+    while v.any():
+        count += (v & np.uint64(1)).astype(np.int64)
+        v = v >> np.uint64(1)
+    return count
 
 
 def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
@@ -419,34 +630,18 @@ def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
     return ys[order], xs[order]
 
 
-def _lookup(grid: BucketGrid, queries: np.ndarray, threads, progress: bool, label: str):
-    """Query in chunks (progress bar); return rows, distances and summed b, d."""
-    from tqdm.auto import tqdm
-
-    rows = np.empty(len(queries), dtype=np.int64)
-    dist = np.empty(len(queries), dtype=np.float32)
-    b_sum = d_sum = 0.0
-    with tqdm(total=len(queries), desc=label, unit="px", unit_scale=True,
-              disable=not progress, leave=False) as bar:
-        for a in range(0, len(queries), LOOKUP_CHUNK):
-            part = slice(a, a + LOOKUP_CHUNK)
-            rows[part], dist[part], st = grid.query(queries[part], threads=threads,
-                                                    return_stats=True)
-            b_sum += float(st.buckets_per_query.sum())
-            d_sum += float(st.tests_per_query.sum())
-            bar.update(len(rows[part]))
-    return rows, dist, b_sum, d_sum
-
-
 def _albedo(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_albedo: np.ndarray,
-            clip_level: float | None) -> np.ndarray:
+            clip_level: float | None, excluded: np.ndarray | None = None) -> np.ndarray:
     """Per-band albedo of matched pixels (eq. 6, or least squares on usable values).
 
     Parameters are (m, P, c) observation vectors of the scene pixels and of
-    their matched gauge pixels, and the (c,) gauge albedo.
+    their matched gauge pixels, the (c,) gauge albedo, and optionally (m, P)
+    measurements to leave out (lights dropped from a pixel's match).
     """
     bad, clipped = measurement_flags(scene_ov, clip_level)
     usable = ~bad & ~clipped
+    if excluded is not None:
+        usable &= ~excluded[..., None]
     s = np.where(usable, scene_ov, 0.0).astype(np.float64)
     g = gauge_ov.astype(np.float64)
     all_usable = usable.all(axis=0)
@@ -464,9 +659,10 @@ def _albedo(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_albedo: np.ndarray
 
 
 def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
-             matched: np.ndarray) -> np.ndarray:
+             matched: np.ndarray, dropped: np.ndarray) -> np.ndarray:
     """(H, W) uint8 :class:`Reason` codes; of several problems the larger code wins."""
     reason = np.full(mask.shape, Reason.SOLVED, dtype=np.uint8)
+    reason[solved & (dropped != 0)] = Reason.SOLVED_FROM_LIGHT_SUBSET
     unsolved = mask & ~solved
     reason[unsolved & scene_sig.band_dark.any(axis=-1)] = Reason.TOO_DARK
     reason[unsolved & scene_sig.band_clipped.any(axis=-1)] = Reason.CLIPPED
@@ -474,3 +670,46 @@ def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
     reason[unsolved & matched] = Reason.NO_GOOD_MATCH
     reason[~mask] = Reason.BACKGROUND
     return reason
+
+
+def _noise_model(gauge_stack: np.ndarray, gauge: Gauge, gauge_sig: SignatureSet,
+                 options: Options, base: NoiseModel | None) -> NoiseModel:
+    """The capture's noise model: the given read noise and gain, or the gauge's."""
+    base = base or NoiseModel(read=0.0, gain=0.0)
+    if options.read_noise == "auto" or options.gain == "auto":
+        centre, radius = (gauge.sphere[:2], gauge.sphere[2]) if gauge.sphere else (None, None)
+        fitted = estimate_noise(gauge_stack, gauge.mask & gauge_sig.valid, base, centre,
+                                radius)
+        base = dataclasses.replace(base, read=fitted.read, gain=fitted.gain,
+                                   estimated=fitted.estimated)
+    changes = {}
+    if options.read_noise != "auto":
+        changes["read"] = float(options.read_noise)
+    if options.gain != "auto":
+        changes["gain"] = float(options.gain)
+    return dataclasses.replace(base, **changes) if changes else base
+
+
+def _ov(sig: SignatureSet) -> np.ndarray:
+    """(H, W, B, m) per-band observation vectors of a signature set (0: unusable band)."""
+    h, w, b = sig.norms.shape
+    unit = sig.signatures.reshape(h, w, b, sig.images)
+    return (unit * sig.norms[..., None]).astype(np.float32)
+
+
+def _lights_of(bitmask: np.ndarray, m: int) -> np.ndarray:
+    """(m, P) bool: light i set in each of the (P,) uint64 bit masks."""
+    bits = np.uint64(1) << np.arange(m, dtype=np.uint64)
+    return (bitmask[None, :] & bits[:, None]) != 0
+
+
+def _dropped_histogram(dropped: np.ndarray) -> dict:
+    counts = np.bincount(_popcount(dropped), minlength=1)
+    return {str(k): int(v) for k, v in enumerate(counts)}
+
+
+def _dropped_per_light(matches: _Matches, solved: np.ndarray, m: int) -> list:
+    dropped = _lights_of(matches.dropped[solved], m)
+    brighter = _lights_of(matches.brighter[solved], m)
+    return [dict(light=i, darker=int((dropped[i] & ~brighter[i]).sum()),
+                 brighter=int(brighter[i].sum())) for i in range(m)]

@@ -12,7 +12,10 @@ light, or several lights of different colours at once.
 BRDFs: ``"lambert"`` and ``"oren-nayar"`` (the qualitative Oren-Nayar model, a
 broad rough-diffuse lobe). Both are the albedo of the band times one fixed
 shape, as gauge-based photometric stereo requires. Attached shadows are
-modelled (cos < 0 gives 0); cast shadows and interreflections are not.
+modelled (cos < 0 gives 0); cast shadows of the relief and a glossy highlight
+the gauge does not share can be added (``render(cast_shadows=True, gloss=...)``),
+with ground truth of which light they affect (:func:`shadow_maps`,
+:func:`highlight_maps`). Interreflections are not modelled.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from .geometry import sphere_normals
 
 __all__ = [
     "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
-    "render", "BRDFS", "mixed_lights", "write_synthetic",
+    "render", "BRDFS", "mixed_lights", "write_synthetic", "shadow_maps", "highlight_maps",
 ]
 
 #: Names of the reflectance models :func:`render` knows.
@@ -137,7 +140,8 @@ def _shade(normals: np.ndarray, light: np.ndarray, brdf: str, roughness: float) 
 
 def render(surface: SyntheticSurface, lighting: Lighting, *,
            brdf: Literal["lambert", "oren-nayar"] = "lambert", roughness: float = 0.5,
-           noise: float = 0.0, seed: int | None = 0) -> np.ndarray:
+           noise: float = 0.0, seed: int | None = 0, cast_shadows: bool = False,
+           gloss: float = 0.0, shininess: float = 60.0) -> np.ndarray:
     """Render an image stack of a surface.
 
     Parameters
@@ -153,6 +157,13 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
         clipped at 0.
     seed : int, optional
         Noise seed.
+    cast_shadows : bool, optional
+        Lights blocked by the relief itself (:func:`shadow_maps`) do not
+        reach a pixel.
+    gloss, shininess : float, optional
+        A white Blinn-Phong highlight ``gloss (n . h)^shininess`` (h halfway
+        between light and view) added to the diffuse shading: a finish the
+        matte gauge does not share (:func:`highlight_maps`).
 
     Returns
     -------
@@ -169,16 +180,84 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
     stack = np.zeros((m, h, w, c), dtype=np.float64)
     n = surface.normals[surface.mask]
     alb = surface.albedo[surface.mask]
+    blocked = shadow_maps(surface, lighting) if cast_shadows else None
     for k in range(m):
         value = np.zeros_like(alb)
-        for light, colour in zip(lighting.directions[k], lighting.colours[k]):
-            value += _shade(n, light, brdf, roughness)[:, None] * colour[None, :]
-        stack[k][surface.mask] = value * alb
+        for index, (light, colour) in enumerate(zip(lighting.directions[k],
+                                                    lighting.colours[k])):
+            shade = _shade(n, light, brdf, roughness)[:, None] * alb
+            if gloss > 0:
+                shade = shade + _specular(n, light, gloss, shininess)[:, None]
+            if blocked is not None:
+                shade = np.where(blocked[k, index][surface.mask][:, None], 0.0, shade)
+            value += shade * colour[None, :]
+        stack[k][surface.mask] = value
     if noise > 0:
         rng = np.random.default_rng(seed)
         stack += rng.normal(0.0, noise, size=stack.shape)
         np.maximum(stack, 0.0, out=stack)
     return stack.astype(np.float32)
+
+
+def _specular(normals: np.ndarray, light: np.ndarray, gloss: float,
+              shininess: float) -> np.ndarray:
+    """Blinn-Phong highlight of one light, view along +z (0 where unlit)."""
+    half = light + np.array([0.0, 0.0, 1.0])
+    half = half / np.linalg.norm(half)
+    lit = normals @ light > 0
+    return np.where(lit, gloss * np.clip(normals @ half, 0.0, 1.0) ** shininess, 0.0)
+
+
+def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:
+    """Where the relief casts a shadow: (m, L, H, W) bool, per image and light.
+
+    A pixel is in the cast shadow of a light when the height field rises above
+    the straight ray from the pixel towards the light (marched one pixel at a
+    time, heights in pixels, orthographic). Attached shadows (the light behind
+    the surface) are not counted: the shading already makes them 0.
+    """
+    from scipy.ndimage import map_coordinates
+
+    h, w = surface.mask.shape
+    z = np.where(surface.mask, surface.height, -np.inf)
+    ys, xs = np.nonzero(surface.mask)
+    z0 = z[ys, xs]
+    top = float(np.max(z0)) if z0.size else 0.0
+    m, n_lights = lighting.directions.shape[:2]
+    out = np.zeros((m, n_lights, h, w), dtype=bool)
+    filled = np.where(surface.mask, surface.height, np.nanmin(surface.height)
+                      if surface.mask.any() else 0.0)
+    for k in range(m):
+        for index, light in enumerate(lighting.directions[k]):
+            across = np.hypot(light[0], light[1])
+            if across < 1e-9 or light[2] <= 0:
+                continue
+            ux, uy = light[0] / across, -light[1] / across  # image rows go down
+            rise = light[2] / across  # height gained per pixel travelled
+            blocked = np.zeros(ys.size, dtype=bool)
+            for t in range(1, h + w):
+                ray = z0 + t * rise
+                live = ~blocked & (ray <= top)
+                if not live.any():
+                    break
+                px, py = xs + t * ux, ys + t * uy
+                inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
+                ground = map_coordinates(filled, [py, px], order=1, mode="nearest")
+                blocked |= live & inside & (ground > ray + 1e-9)
+            facing = surface.normals[ys, xs] @ light > 0
+            out[k, index, ys, xs] = blocked & facing
+    return out
+
+
+def highlight_maps(surface: SyntheticSurface, lighting: Lighting, *, gloss: float,
+                   shininess: float = 60.0, level: float = 0.01) -> np.ndarray:
+    """Where the highlight of :func:`render` adds more than ``level``: (m, L, H, W)."""
+    out = np.zeros(lighting.directions.shape[:2] + surface.mask.shape, dtype=bool)
+    n = surface.normals[surface.mask]
+    for k in range(lighting.images):
+        for index, light in enumerate(lighting.directions[k]):
+            out[k, index][surface.mask] = _specular(n, light, gloss, shininess) > level
+    return out
 
 
 def sphere_surface(size: int | tuple[int, int], radius: float, centre=None,

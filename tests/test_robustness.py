@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from colorps import Gauge, ImageReadError, angular_error, reconstruct, synth
+from colorps import Gauge, ImageReadError, Reason, angular_error, reconstruct, synth
 from colorps.cli import main
 from colorps.io import LossyInputWarning, read_image, write_image
 
@@ -69,7 +69,8 @@ def test_clipped_band_solved_and_albedo_from_unclipped_measurements():
     assert not np.isnan(result.albedo[..., 1:][scene.mask]).any()
     assert nan_red.sum() < 0.25 * was_clipped.sum() and (nan_red <= was_clipped).all()
     # Without a clip level the clipped pixels are matched from a wrong signature.
-    naive = reconstruct(clipped, gauge_stack, gauge, mask=scene.mask, max_distance=None)
+    naive = reconstruct(clipped, gauge_stack, gauge, mask=scene.mask, max_residual=None,
+                        light_subsets=False)
     naive_err = angular_error(naive.normals[was_clipped], scene.normals[was_clipped])
     assert naive_err.mean() > 2 * err.mean()
 
@@ -93,19 +94,26 @@ def test_mono_clipped_and_bad_values_get_reasons():
     assert colour_mode.stats.pixels_by_reason["clipped"] == 0
 
 
-def test_cast_shadow_is_no_good_match():
+def test_cast_shadow_solved_from_the_other_lights():
     lighting = synth.ring_lights(6, 45)
     scene = synth.smiley_surface(100)
     stack = synth.render(scene, lighting)
     stack[2, 20:40, 30:60] *= 0.1  # a shadow cast by something in image 2
     gauge_stack, gauge = gauge_for(lighting, radius=60)
-    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
     shadow = np.zeros(scene.mask.shape, bool)
     shadow[20:40, 30:60] = True
     lit = scene.mask & ~shadow
-    assert (result.reason[shadow & scene.mask] == 5).mean() > 0.9
-    assert np.nanmedian(result.quality[shadow]) > 5 * np.nanmedian(result.quality[lit])
-    assert result.solved[lit].mean() > 0.99
+    shadow &= scene.mask & (scene.normals @ lighting.directions[2, 0] > 0.05)
+    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    assert (result.reason[shadow] == Reason.SOLVED_FROM_LIGHT_SUBSET).mean() > 0.95
+    assert (result.dropped_lights[shadow] == 1 << 2).mean() > 0.95  # light 2 identified
+    assert angular_error(result.normals[shadow], scene.normals[shadow]).mean() < 1.0
+    assert result.solved[lit].mean() > 0.99 and (result.lights_dropped_count[lit] == 0).mean() > 0.99
+    assert result.stats.dropped_per_light[2]["darker"] >= shadow.sum() * 0.95
+    # Without light subsets the same pixels are no good match, with a large residual.
+    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
+    assert (plain.reason[shadow] == Reason.NO_GOOD_MATCH).mean() > 0.9
+    assert np.nanmedian(plain.quality[shadow]) > 5 * np.nanmedian(plain.quality[lit])
 
 
 # ------------------------------------------------------------------ CLI cases

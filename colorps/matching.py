@@ -1,0 +1,187 @@
+"""Matching scene pixels with the gauge: band weights, band subsets, light subsets.
+
+Pixels are matched in groups that share one table: the same usable bands, the
+same band weights and the same lights. For a group with bands K, weights
+2^l_k and lights L the table holds, for every gauge pixel with those bands
+usable, the concatenation of 2^l_k g_k (g_k: band k's unit signature over L),
+and a pixel's query is the same of its own signatures. The nearest entry is
+the exact minimiser of the **weighted signature distance** ::
+
+    D(p, q)^2 = sum over k in K of 4^l_k |s_k(p) - g_k(q)|^2
+
+found by the bucket grid (or, for a group of a few pixels, by brute force:
+both exact). The weights are powers of two of each band's signal-to-noise
+ratio |S_k| / sigma_k relative to the pixel's best band; a band more than
+``DROP_LEVEL`` octaves below is dropped when the others fix the normal.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .grid import BucketGrid
+from .noise import NoiseModel
+from .residuals import band_variance, match_residual, table_resolution, unit_rows
+
+__all__ = ["Capture", "GroupResult", "weight_levels", "nearest"]
+
+# ---------------------------------------------------------------- tuning
+#: Band weights are 2^level, level = round(log2(relative SNR)) in DROP_LEVEL + 1 .. 0;
+#: a band at DROP_LEVEL or below is dropped (it carries under 1/64 of the
+#: information of the best band).
+DROP_LEVEL = -3
+#: Groups of fewer pixels are matched by brute force instead of a grid.
+BRUTE_FORCE_PIXELS = 64
+#: Brute force works on blocks of about this many table-times-query values.
+BRUTE_FORCE_BLOCK = 1 << 22
+
+
+def weight_levels(norms: np.ndarray, variance: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per-band weight levels (int8; DROP_LEVEL or below: drop) of pixels.
+
+    Parameters
+    ----------
+    norms, variance, valid : (P, B) ndarray
+        OV norms, mean measurement variances, and usable bands.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr = np.where(valid, norms / np.sqrt(np.maximum(variance, 1e-30)), 0.0)
+        best = snr.max(axis=-1, keepdims=True)
+        rel = np.log2(snr / np.where(best > 0, best, 1.0))
+    levels = np.clip(np.round(np.nan_to_num(rel, nan=-99.0, neginf=-99.0)), DROP_LEVEL, 0)
+    return levels.astype(np.int8)
+
+
+def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None,
+            sample=None) -> tuple[np.ndarray, float, float, int | None]:
+    """Exact nearest table row of each query; (rows, summed b, summed d, grid N or None)."""
+    if len(queries) < BRUTE_FORCE_PIXELS:
+        t = table.astype(np.float64)
+        t2 = (t * t).sum(axis=1)
+        rows = np.empty(len(queries), dtype=np.int64)
+        step = max(1, BRUTE_FORCE_BLOCK // max(1, table.size))
+        for a in range(0, len(queries), step):
+            q = queries[a:a + step].astype(np.float64)
+            d2 = t2[None, :] - 2.0 * q @ t.T
+            rows[a:a + step] = np.argmin(d2, axis=1)
+        return rows, float(len(queries)), float(len(queries) * len(table)), None
+    grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
+    rows, _, st = grid.query(queries, threads=threads, return_stats=True)
+    return (rows, float(st.buckets_per_query.sum()), float(st.tests_per_query.sum()),
+            grid.n)
+
+
+@dataclass
+class _LightSet:
+    """The gauge over one subset of lights: unit signatures and what residuals need."""
+
+    signatures: np.ndarray  # (Hg, Wg, B, m') float32
+    norm2: np.ndarray       # (Hg, Wg, B)
+    variance: np.ndarray    # (Hg, Wg, B)
+    resolution: np.ndarray  # (Hg, Wg, B) h^2
+    usable: np.ndarray      # (Hg, Wg, B) bool
+
+
+@dataclass(frozen=True)
+class GroupResult:
+    """One group's matches: gauge pixel (flat index, -1: no table) and residual."""
+
+    rows: np.ndarray
+    residual: np.ndarray
+    distance: np.ndarray  # plain signature distance per band (unweighted)
+    table_size: int
+    grid_n: int | None
+    buckets: float
+    tests: float
+    seconds_grid: float
+    seconds_lookup: float
+
+
+@dataclass
+class Capture:
+    """Scene and gauge observation vectors, per band, with the noise model.
+
+    Attributes
+    ----------
+    scene_ov : (H, W, B, m) ndarray of float32
+        Scene OVs of the signature bands (0 where a band is unusable).
+    scene_valid : (H, W, B) ndarray of bool
+    gauge_ov : (Hg, Wg, B, m) ndarray of float32
+    gauge_valid : (Hg, Wg, B) ndarray of bool
+        Usable bands of gauge pixels inside the gauge mask.
+    gauge_normals : (Hg * Wg, 3) ndarray
+    model : NoiseModel
+    min_norm : float
+        Smallest usable OV norm over any light subset.
+    """
+
+    scene_ov: np.ndarray
+    scene_valid: np.ndarray
+    gauge_ov: np.ndarray
+    gauge_valid: np.ndarray
+    gauge_normals: np.ndarray
+    model: NoiseModel
+    min_norm: float
+    _light_sets: dict = field(default_factory=dict)
+
+    @property
+    def images(self) -> int:
+        return self.scene_ov.shape[-1]
+
+    @property
+    def bands(self) -> int:
+        return self.scene_ov.shape[-2]
+
+    def light_set(self, lights: tuple[int, ...]) -> _LightSet:
+        """The gauge restricted to ``lights`` (computed once per subset)."""
+        if lights not in self._light_sets:
+            ov = self.gauge_ov[..., list(lights)]
+            sig, norms = unit_rows(ov)
+            usable = self.gauge_valid & (norms > self.min_norm)
+            sig = np.where(usable[..., None], sig, 0.0).astype(np.float32)
+            self._light_sets[lights] = _LightSet(
+                signatures=sig, norm2=norms ** 2, variance=band_variance(ov, self.model),
+                resolution=table_resolution(sig, usable.all(axis=-1)), usable=usable)
+        return self._light_sets[lights]
+
+    def match(self, ys: np.ndarray, xs: np.ndarray, bands: tuple[int, ...],
+              levels: tuple[int, ...], lights: tuple[int, ...], *, grid_n=None,
+              threads=None, sample_size: int = 4000) -> GroupResult:
+        """Match pixels (ys, xs) on ``bands`` weighted 2^levels over ``lights``."""
+        t0 = time.perf_counter()
+        gauge = self.light_set(lights)
+        band_list = list(bands)
+        table_px = gauge.usable[..., band_list].all(axis=-1)
+        scale = np.exp2(np.array(levels, dtype=np.float32))[:, None]
+        n_rows = len(ys)
+        if table_px.sum() < 3:
+            nothing = np.full(n_rows, np.nan, np.float32)
+            return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
+                               0.0, time.perf_counter() - t0, 0.0)
+        table = (gauge.signatures[table_px][:, band_list] * scale).reshape(-1, len(bands) *
+                                                                           len(lights))
+        ov = self.scene_ov[ys, xs][:, band_list][..., list(lights)]
+        sig, norms = unit_rows(ov)
+        queries = np.ascontiguousarray((sig * scale).reshape(n_rows, -1))
+        table = np.ascontiguousarray(table)
+        sample = queries[:: max(1, n_rows // sample_size)]
+        t_grid = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        found, b_sum, d_sum, n = nearest(table, queries, grid_n=grid_n, threads=threads,
+                                         sample=sample)
+        rows = np.flatnonzero(table_px)[found]
+        t_lookup = time.perf_counter() - t0
+        g = gauge.signatures.reshape(-1, self.bands, len(lights))[rows][:, band_list]
+        distance = np.sqrt(((sig - g) ** 2).sum(axis=(1, 2)) / len(bands)).astype(np.float32)
+        residual = match_residual(
+            sig, g, norms ** 2,
+            gauge.norm2.reshape(-1, self.bands)[rows][:, band_list],
+            band_variance(ov, self.model),
+            gauge.variance.reshape(-1, self.bands)[rows][:, band_list],
+            gauge.resolution.reshape(-1, self.bands)[rows][:, band_list],
+            np.ones((n_rows, len(bands)), dtype=bool))
+        return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
+                           t_grid, t_lookup)

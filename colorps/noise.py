@@ -1,0 +1,203 @@
+"""The noise model of a capture: the expected standard deviation of every measurement.
+
+A measurement v (linear, 0..1 scale) of a photo has variance ::
+
+    sigma(v)^2 = read^2 + gain * v + quantisation(v)^2
+
+* ``read``: a floor (sensor read noise, dark current), linear units;
+* ``gain * v``: shot noise, whose variance grows with the signal;
+* ``quantisation(v)``: one code step of the file's pixel type at v, in linear
+  units, divided by sqrt(12) (a uniform rounding error). For sRGB-encoded
+  integer files the step is taken through colour-science's sRGB decoding at v,
+  so it shrinks in the shadows and grows in the highlights; for half-float
+  files it is one half-float unit of v; for float32 files it is 0.
+
+``read`` and ``gain`` come from the gauge's own pixel-to-pixel scatter
+(:func:`estimate_noise`): a sphere's shading is smooth, so what a local
+quadratic fit over 3 x 3 pixels does not explain is noise. A user who knows
+the camera can give them instead (``Options.read_noise``, ``Options.gain``).
+
+Everything downstream is expressed in units of this sigma: the band weights of
+colour signatures, the quality map and the acceptance of a match.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+__all__ = ["NoiseModel", "estimate_noise", "quantisation_sigma"]
+
+#: The read-noise floor of floating-point data with no measurable scatter (linear).
+FLOAT_READ_NOISE = 1e-5
+#: Gauge pixels further than this fraction of the radius from the centre are not
+#: used to estimate noise (the shading curves fastest near the rim).
+NOISE_RADIUS_FRACTION = 0.85
+#: Brightness bins of the noise fit, and the fewest pixels a bin needs.
+NOISE_BINS = 16
+NOISE_MIN_PIXELS = 50
+
+PixelType = Literal["int", "half", "float"]
+
+
+def quantisation_sigma(values: np.ndarray, *, pixel_type: PixelType, top_code: int = 255,
+                       encoding: Literal["linear", "srgb"] = "srgb") -> np.ndarray:
+    """Standard deviation (linear) of the rounding of ``values`` to the file's codes.
+
+    Parameters
+    ----------
+    values : ndarray
+        Linear measurements (0..1 scale).
+    pixel_type : {"int", "half", "float"}
+        The file's pixel type.
+    top_code : int, optional
+        Largest code of an integer file (255 for 8 bits, 65535 for 16 bits).
+    encoding : {"linear", "srgb"}, optional
+        How an integer file's codes map to linear light.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if pixel_type == "float":
+        return np.zeros_like(v)
+    if pixel_type == "half":
+        ulp = np.exp2(np.floor(np.log2(np.maximum(np.abs(v), 2.0 ** -14))) - 10)
+        return ulp / np.sqrt(12.0)
+    step = 1.0 / top_code
+    if encoding == "linear":
+        return np.full_like(v, step / np.sqrt(12.0))
+    from .io import srgb_decode, srgb_encode
+
+    code = srgb_encode(np.clip(v, 0.0, 1.0)).astype(np.float64)
+    up = srgb_decode(np.clip(code + step / 2, 0.0, 1.0)).astype(np.float64)
+    down = srgb_decode(np.clip(code - step / 2, 0.0, 1.0)).astype(np.float64)
+    return (up - down) / np.sqrt(12.0)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """sigma(v)^2 = read^2 + gain v + quantisation(v)^2 for every measurement v.
+
+    Attributes
+    ----------
+    read : float
+        Read-noise floor (linear units).
+    gain : float
+        Shot-noise variance per unit of linear signal.
+    pixel_type : {"int", "half", "float"}
+    top_code : int
+        Largest code of integer files.
+    encoding : {"linear", "srgb"}
+        How integer codes map to linear light.
+    estimated : bool
+        True when ``read`` and ``gain`` were fitted to the gauge.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from colorps.noise import NoiseModel
+    >>> model = NoiseModel(read=0.001, gain=0.0, pixel_type="float")
+    >>> model.sigma(np.array([0.0, 0.5])).tolist()
+    [0.001, 0.001]
+    """
+
+    read: float
+    gain: float
+    pixel_type: PixelType = "float"
+    top_code: int = 255
+    encoding: Literal["linear", "srgb"] = "linear"
+    estimated: bool = False
+
+    def sigma(self, values) -> np.ndarray:
+        """Standard deviation of each measurement (linear units, same shape)."""
+        v = np.maximum(np.asarray(values, dtype=np.float64), 0.0)
+        v = np.where(np.isfinite(v), v, 0.0)
+        q = quantisation_sigma(v, pixel_type=self.pixel_type, top_code=self.top_code,
+                               encoding=self.encoding)
+        return np.sqrt(self.read ** 2 + self.gain * v + q * q)
+
+    def as_dict(self) -> dict:
+        return dict(read=self.read, gain=self.gain, pixel_type=self.pixel_type,
+                    top_code=self.top_code, encoding=self.encoding, estimated=self.estimated)
+
+
+def _quadratic_residual_filter() -> np.ndarray:
+    """3 x 3 weights r such that sum(r * patch) is the patch centre minus the
+    value at the centre of the least-squares quadratic through the patch."""
+    y, x = np.mgrid[-1:2, -1:2]
+    x, y = x.ravel(), y.ravel()
+    design = np.stack([np.ones(9), x, y, x * x, x * y, y * y], axis=1).astype(np.float64)
+    hat_row = design[4] @ np.linalg.pinv(design)
+    residual = -hat_row
+    residual[4] += 1.0
+    return residual.reshape(3, 3)
+
+
+def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel,
+                   centre: tuple[float, float] | None = None,
+                   radius: float | None = None) -> NoiseModel:
+    """Fit ``read`` and ``gain`` of ``base`` to the gauge's pixel-to-pixel scatter.
+
+    Parameters
+    ----------
+    gauge_stack : (m, H, W, c) ndarray
+        Linear gauge images.
+    usable : (H, W) ndarray of bool
+        Gauge pixels whose measurements are all usable (no clip, no NaN).
+    base : NoiseModel
+        Pixel type and encoding of the files; its read and gain are kept where
+        the gauge cannot tell (too few pixels).
+    centre, radius : optional
+        Sphere geometry (pixels): only pixels within NOISE_RADIUS_FRACTION of
+        the radius are used.
+
+    Returns
+    -------
+    NoiseModel
+        ``read`` and ``gain`` fitted by non-negative least squares to the
+        robust (median absolute deviation) variance of the residuals of a
+        local quadratic fit, binned by brightness, after removing the known
+        quantisation variance.
+    """
+    from scipy.ndimage import binary_erosion, correlate
+    from scipy.optimize import nnls
+
+    data = np.asarray(gauge_stack, dtype=np.float64)
+    m, h, w, c = data.shape
+    inner = binary_erosion(usable, np.ones((3, 3), bool), border_value=0)
+    if centre is not None and radius is not None:
+        yy, xx = np.mgrid[0:h, 0:w]
+        inner &= np.hypot(xx - centre[0], yy - centre[1]) < NOISE_RADIUS_FRACTION * radius
+    if inner.sum() < NOISE_MIN_PIXELS:
+        return base
+    kernel = _quadratic_residual_filter()
+    gain_factor = float((kernel * kernel).sum())  # var(residual) = factor * sigma^2
+    values, residuals = [], []
+    for i in range(m):
+        for k in range(c):
+            image = data[i, :, :, k]
+            r = correlate(np.where(usable, image, 0.0), kernel, mode="nearest")
+            values.append(image[inner])
+            residuals.append(r[inner])
+    v = np.concatenate(values)
+    r = np.concatenate(residuals)
+    edges = np.quantile(v, np.linspace(0, 1, NOISE_BINS + 1))
+    rows, target = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        pick = (v >= lo) & (v <= hi)
+        if pick.sum() < NOISE_MIN_PIXELS:
+            continue
+        mad = np.median(np.abs(r[pick] - np.median(r[pick])))
+        variance = (1.4826 * mad) ** 2 / gain_factor
+        level = float(np.median(v[pick]))
+        q = quantisation_sigma(np.array([level]), pixel_type=base.pixel_type,
+                               top_code=base.top_code, encoding=base.encoding)[0]
+        rows.append([1.0, level])
+        target.append(max(variance - q * q, 0.0))
+    if len(rows) < 2:
+        return base
+    (read2, gain), _ = nnls(np.array(rows), np.array(target))
+    floor = FLOAT_READ_NOISE if base.pixel_type != "int" else 0.0
+    return NoiseModel(read=float(max(np.sqrt(read2), floor)), gain=float(gain),
+                      pixel_type=base.pixel_type, top_code=base.top_code,
+                      encoding=base.encoding, estimated=True)

@@ -1,0 +1,130 @@
+"""How well a match explains a pixel, in units of what the noise model expects.
+
+For a scene pixel p matched to gauge pixel q over the lights L (m' of them),
+band k has the signature residual d_k = |s_k - g_k|^2 (s, g unit vectors over
+L). Its expected value when q is the right normal is ::
+
+    E_k = (m' - 1) (sigma_S^2 / |S_k|^2 + sigma_G^2 / |G_k|^2) + h_k(q)^2 / 6
+
+the noise of both unit vectors (sigma^2: the mean variance of the band's
+measurements, :class:`~colorps.noise.NoiseModel`; m' - 1 directions
+perpendicular to the signature) plus the table's own resolution: h_k(q) is the
+RMS signature step from q to its 4 neighbours on the gauge, and a point
+uniformly placed among table entries h apart lies h^2 / 6 from the nearest on
+average; plus MODEL_FLOOR^2, the least mismatch of any real gauge and scene
+(finish, shape, light fall-off), which keeps noiseless data from making every
+small difference infinitely significant. The **residual** of the match is ::
+
+    r(p) = sqrt( mean over matched bands of d_k / E_k )
+
+about 1 for a pixel the gauge explains, and much larger for a cast shadow, a
+highlight, or a material the gauge does not share. ``quality.exr`` is r
+divided by the capture's model scale (its median over the image when that
+exceeds 1: BRDF and light mismatch that every pixel shares).
+
+The per-light residual (S_ki - a_k G_ki) / sigma(S_ki), with a_k the
+least-squares albedo ratio of band k, summed over bands and divided by sqrt(B),
+says which light a poor match disagrees with: negative for a cast shadow,
+positive for a highlight.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .noise import NoiseModel
+
+__all__ = ["band_variance", "table_resolution", "match_residual", "light_residuals",
+           "unit_rows", "MODEL_FLOOR"]
+
+#: Signature residual per band (unit vectors; 0.005 is about 0.3 degrees between
+#: two OVs) that any match is allowed on top of noise and table resolution.
+MODEL_FLOOR = 0.005
+
+
+def unit_rows(ov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Observation vectors (..., m) as unit vectors, and their norms (zero stays zero)."""
+    norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
+    safe = np.where(norms > 0, norms, 1.0)
+    return (ov / safe[..., None]).astype(np.float32), norms
+
+
+def band_variance(ov: np.ndarray, model: NoiseModel) -> np.ndarray:
+    """Mean measurement variance per band: (..., B, m) OVs -> (..., B)."""
+    sigma = model.sigma(ov)
+    return (sigma * sigma).mean(axis=-1)
+
+
+def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Squared signature step h^2 from each gauge pixel to its usable 4-neighbours.
+
+    Parameters
+    ----------
+    signatures : (H, W, B, m) ndarray
+        Per-band unit signatures of the gauge.
+    usable : (H, W) ndarray of bool
+
+    Returns
+    -------
+    (H, W, B) ndarray of float64
+        Mean over usable neighbours of |g_k(q) - g_k(neighbour)|^2 (0 where
+        a pixel has none).
+    """
+    total = np.zeros(signatures.shape[:3])
+    count = np.zeros(signatures.shape[:2])
+    for axis in (0, 1):
+        for step in (1, -1):
+            moved = np.roll(signatures, step, axis=axis)
+            ok = usable & np.roll(usable, step, axis=axis)
+            edge = [slice(None)] * 2
+            edge[axis] = slice(0, 1) if step == 1 else slice(-1, None)
+            ok[tuple(edge)] = False  # no wrap-around
+            diff = ((signatures - moved).astype(np.float64) ** 2).sum(axis=-1)
+            total += np.where(ok[..., None], diff, 0.0)
+            count += ok
+    return total / np.maximum(count, 1)[..., None]
+
+
+def match_residual(scene_sig, gauge_sig, scene_norm2, gauge_norm2, scene_var, gauge_var,
+                   resolution, bands_used) -> np.ndarray:
+    """The residual r of matched pixels (see the module docstring).
+
+    Parameters
+    ----------
+    scene_sig, gauge_sig : (P, B, m') ndarray
+        Unit signatures over the lights used, of the pixels and their matches.
+    scene_norm2, gauge_norm2, scene_var, gauge_var : (P, B) ndarray
+        Squared OV norms and mean measurement variances over those lights.
+    resolution : (P, B) ndarray
+        h^2 of each match (:func:`table_resolution`).
+    bands_used : (P, B) ndarray of bool
+
+    Returns
+    -------
+    (P,) ndarray of float32
+    """
+    m_used = scene_sig.shape[-1]
+    d = ((scene_sig.astype(np.float64) - gauge_sig) ** 2).sum(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        expected = (m_used - 1) * (scene_var / scene_norm2 + gauge_var / gauge_norm2) \
+            + resolution / 6.0 + MODEL_FLOOR ** 2
+        ratio = np.where(bands_used, d / np.maximum(expected, 1e-30), 0.0)
+    bands = np.maximum(bands_used.sum(axis=-1), 1)
+    return np.sqrt(ratio.sum(axis=-1) / bands).astype(np.float32)
+
+
+def light_residuals(scene_ov, gauge_ov, lights, bands_used, model: NoiseModel
+                    ) -> np.ndarray:
+    """Signed residual of every light, in noise units: (P, B, m) OVs -> (P, m).
+
+    Only ``lights`` ((P, m) bool) enter the albedo fit; the others get a
+    residual too (what they would need to be), which callers ignore.
+    """
+    s = scene_ov.astype(np.float64)
+    g = gauge_ov.astype(np.float64)
+    w = lights[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)  # (P, B)
+        r = (s - ratio[..., None] * g) / model.sigma(s)
+    r = np.where(bands_used[..., None] & np.isfinite(r), r, 0.0)
+    return r.sum(axis=1) / np.sqrt(np.maximum(bands_used.sum(axis=1), 1))[:, None]
