@@ -30,17 +30,24 @@ MIN_RADIUS = 8.0
 RIM_MARGIN_PX = 2.0
 RIM_MARGIN_FRACTION = 0.02
 #: find_sphere: the sphere is segmented at SEGMENT_LEVEL of the bright level
-#: (the BRIGHT_PERCENTILE of the summed images), its outline needs at least
-#: MIN_OUTLINE_POINTS points, and a circle fitted by RANSAC (inliers within
-#: RANSAC_RESIDUAL_PX, RANSAC_TRIALS trials) must explain MIN_INLIER_FRACTION of
-#: the outline and the region's area within AREA_TOLERANCE.
+#: (the BRIGHT_PERCENTILE of the brightest-of-all-images picture); a second
+#: region of SECOND_REGION of the largest's size makes the gauge ambiguous; the
+#: outline needs MIN_OUTLINE_POINTS points, and a circle fitted by RANSAC
+#: (inliers within RANSAC_RESIDUAL_PX, RANSAC_TRIALS trials) must explain
+#: MIN_INLIER_FRACTION of it over an arc of MIN_ARC_DEG, hold MIN_INSIDE of the
+#: region within REGION_SLACK_PX of its rim, and be MIN_COVER covered by it (a
+#: sphere lit from one side only shows half its disk).
 BRIGHT_PERCENTILE = 99.5
 SEGMENT_LEVEL = 0.05
+SECOND_REGION = 0.25
 MIN_OUTLINE_POINTS = 20
 RANSAC_RESIDUAL_PX = 1.0
-RANSAC_TRIALS = 200
-MIN_INLIER_FRACTION = 0.8
-AREA_TOLERANCE = 0.15
+RANSAC_TRIALS = 500
+MIN_INLIER_FRACTION = 0.4
+MIN_ARC_DEG = 150.0
+MIN_INSIDE = 0.97
+REGION_SLACK_PX = 1.5
+MIN_COVER = 0.35
 
 
 def parse_albedo(albedo, bands: int) -> np.ndarray:
@@ -134,11 +141,18 @@ class Gauge:
 def find_sphere(stack) -> tuple[float, float, float]:
     """Find the gauge sphere's silhouette in a gauge stack.
 
-    The images are summed (every lit part of the sphere shows in some image),
-    the sphere is segmented with a low threshold (5 % of the bright level; the
-    background is assumed darker), and a circle is fitted robustly with
-    scikit-image (RANSAC over ``CircleModel``) to the subpixel boundary of the
-    largest region.
+    The brightest value of every pixel over all images is taken (the union of
+    the lit parts: a real capture's lights rarely reach the whole sphere, so
+    part of its rim stays dark in every image), the sphere is segmented with a
+    low threshold (SEGMENT_LEVEL of the bright level; the background is assumed
+    darker), and a circle is fitted robustly with scikit-image (RANSAC over
+    ``CircleModel``) to the subpixel outline of the largest region. Only the
+    lit arc of the outline lies on the circle; the rest (the terminator, where
+    the unlit part begins) lies inside it.
+
+    The circle is accepted when its inliers make up MIN_INLIER_FRACTION of the
+    outline and span MIN_ARC_DEG around the centre, the region lies within the
+    circle and covers MIN_COVER of it.
 
     Parameters
     ----------
@@ -153,7 +167,7 @@ def find_sphere(stack) -> tuple[float, float, float]:
     Raises
     ------
     GaugeError
-        When no convincing circle is found.
+        When no convincing circle is found, or two regions could be the gauge.
     """
     from skimage import measure
 
@@ -162,19 +176,28 @@ def find_sphere(stack) -> tuple[float, float, float]:
         data = data[..., None]
     if data.ndim != 4:
         raise InputError(f"gauge stack: expected (m, H, W, c), got shape {data.shape}")
-    total = np.nan_to_num(data.sum(axis=(0, 3)), nan=0.0, posinf=0.0)
-    bright = np.percentile(total, BRIGHT_PERCENTILE)
+    if min(data.shape[1:3]) < 2 * MIN_RADIUS:
+        raise GaugeError(f"sphere auto: the {data.shape[2]}x{data.shape[1]} gauge images "
+                         f"are too small to hold a sphere of {MIN_RADIUS:g}+ px radius")
+    brightest = np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0).max(axis=(0, 3))
+    bright = np.percentile(brightest, BRIGHT_PERCENTILE)
     if not bright > 0:
         raise GaugeError("sphere auto: the gauge images are black; cannot find the sphere")
     level = SEGMENT_LEVEL * bright
-    labels = measure.label(total > level)
+    labels = measure.label(brightest > level)
     if labels.max() == 0:
         raise GaugeError("sphere auto: no bright region found in the gauge images")
-    largest = np.argmax(np.bincount(labels.ravel())[1:]) + 1
-    region = labels == largest
+    sizes = np.bincount(labels.ravel())[1:]
+    ranked = np.argsort(sizes)[::-1]
+    if len(ranked) > 1 and sizes[ranked[1]] >= SECOND_REGION * sizes[ranked[0]]:
+        raise GaugeError(
+            f"sphere auto: two bright regions of {sizes[ranked[0]]} and "
+            f"{sizes[ranked[1]]} px could each be the gauge; crop the gauge images to one "
+            "sphere or give --sphere CX,CY,R")
+    region = labels == ranked[0] + 1
     # Subpixel boundary of the region, on the image masked to it.
-    contours = measure.find_contours(np.where(region, total, 0.0), level)
-    points = max(contours, key=len)[:, ::-1]  # (row, col) -> (x, y)
+    contours = measure.find_contours(np.where(region, brightest, 0.0), level)
+    points = max(contours, key=len)[:, ::-1] if contours else np.zeros((0, 2))
     if len(points) < MIN_OUTLINE_POINTS:
         raise GaugeError("sphere auto: the bright region is too small to be a gauge sphere")
     model, inliers = measure.ransac(points, measure.CircleModel, min_samples=3,
@@ -186,10 +209,18 @@ def find_sphere(stack) -> tuple[float, float, float]:
         (cx, cy), r = (float(v) for v in model.center), float(model.radius)
     else:
         cx, cy, r = (float(v) for v in model.params)
-    area_ratio = region.sum() / (np.pi * r * r)
-    if inliers.mean() < MIN_INLIER_FRACTION or abs(area_ratio - 1.0) >= AREA_TOLERANCE:
+    angles = np.degrees(np.arctan2(points[inliers, 1] - cy, points[inliers, 0] - cx))
+    gaps = np.diff(np.sort(angles), append=np.sort(angles)[:1] + 360.0) if angles.size \
+        else np.array([360.0])
+    arc = 360.0 - float(gaps.max())
+    ys, xs = np.nonzero(region)
+    inside = float(np.mean(np.hypot(xs - cx, ys - cy) <= r + REGION_SLACK_PX))
+    cover = region.sum() / (np.pi * r * r)
+    if (inliers.mean() < MIN_INLIER_FRACTION or arc < MIN_ARC_DEG
+            or inside < MIN_INSIDE or cover < MIN_COVER):
         raise GaugeError(
             f"sphere auto: no convincing circle (best fit ({cx:.1f}, {cy:.1f}) r={r:.1f} "
-            f"explains {inliers.mean():.0%} of the outline, region/circle area "
-            f"{area_ratio:.2f}); give --sphere CX,CY,R")
+            f"explains {inliers.mean():.0%} of the outline over a {arc:.0f} degree arc, "
+            f"{inside:.0%} of the region inside it, covering {cover:.0%} of the disk); "
+            "give --sphere CX,CY,R")
     return cx, cy, r

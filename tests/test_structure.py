@@ -32,11 +32,15 @@ def test_cli_defaults_are_the_options_defaults():
 def test_cli_converts_every_option_text():
     got = cli_options("--mode", "mono", "--band", "2", "--colourspace", "Adobe RGB (1998)",
                       "--grid-n", "auto", "--threads", "1", "--dark-level", "0.001",
-                      "--clip-level", "none", "--max-distance", "none", "--encoding", "srgb",
-                      "--mesh", "obj")
+                      "--clip-level", "none", "--max-distance", "0.2", "--encoding", "srgb",
+                      "--mesh", "obj", "--read-noise", "0.002", "--gain", "0",
+                      "--no-band-weights", "--no-light-subsets", "--max-dropped-lights", "1",
+                      "--max-residual", "none")
     assert got == Options(mode="mono", band=2, colourspace="Adobe RGB (1998)",
                           grid_n="auto", threads=1, dark_level=0.001, clip_level=None,
-                          max_distance=None, encoding="srgb", mesh="obj")
+                          max_distance=0.2, encoding="srgb", mesh="obj", read_noise=0.002,
+                          gain=0.0, band_weights=False, light_subsets=False,
+                          max_dropped_lights=1, max_residual=None)
     assert cli_options("--band", "luminance", "--grid-n", "7", "--clip-level", "0.9",
                        "--no-height").replace(mesh=None) == \
         Options(band="luminance", grid_n=7, clip_level=0.9, height=False)
@@ -46,6 +50,7 @@ def test_cli_converts_every_option_text():
     ("mode", "grey"), ("band", -1), ("band", "red"), ("grid_n", 0), ("grid_n", 2.5),
     ("threads", 0), ("threads", True), ("dark_level", 0.0), ("dark_level", "none"),
     ("clip_level", -1.0), ("clip_level", float("nan")), ("max_distance", 0),
+    ("read_noise", -0.1), ("gain", "big"), ("max_dropped_lights", -1), ("max_residual", 0),
     ("encoding", "gamma"), ("mesh", "stl")])
 def test_bad_option_names_its_field(field, value):
     with pytest.raises(InputError, match=f"^{field}: "):

@@ -1,0 +1,191 @@
+"""Noise model, band weights, light subsets and the auto sphere on messy captures."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from colorps import Gauge, GaugeError, Reason, angular_error, find_sphere, reconstruct, synth
+from colorps.matching import Capture, weight_levels
+from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
+from colorps.signatures import compute_signatures
+
+GAUGE_R = 80
+
+
+def gauge_for(lighting, noise=0.0, seed=2, **render):
+    size = 2 * GAUGE_R + 10
+    ball = synth.sphere_surface(size, GAUGE_R)
+    centre = (size - 1) / 2
+    return (synth.render(ball, lighting, noise=noise, seed=seed, **render),
+            Gauge.from_sphere((size, size), centre, centre, GAUGE_R))
+
+
+# ------------------------------------------------------------------ noise model
+@pytest.mark.parametrize("read, gain", [(0.01, 0.0), (0.002, 2e-4), (0.0, 5e-4)])
+def test_noise_fit_recovers_read_noise_and_gain(read, gain):
+    lights = synth.ring_lights(8, 45)
+    ball = synth.sphere_surface(180, 80, albedo=0.8)
+    clean = synth.render(ball, lights)
+    rng = np.random.default_rng(3)
+    noisy = clean + rng.normal(size=clean.shape) * np.sqrt(read ** 2 + gain * clean)
+    usable = ball.mask & (noisy > 0).all(axis=(0, 3))
+    fit = estimate_noise(noisy.astype(np.float32), usable, NoiseModel(0, 0), (89.5, 89.5), 80)
+    assert fit.estimated
+    level = 0.3  # compare the predicted sigma at a typical level
+    truth = np.sqrt(read ** 2 + gain * level)
+    assert fit.sigma(np.array([level]))[0] == pytest.approx(truth, rel=0.1)
+
+
+def test_quantisation_of_srgb_codes_grows_with_the_level():
+    q = quantisation_sigma(np.array([0.001, 0.05, 0.5, 0.9]), pixel_type="int")
+    assert np.all(np.diff(q) > 0)
+    assert q[2] == pytest.approx(0.0017, rel=0.1)  # one 8-bit code at 0.5 linear / sqrt(12)
+    assert quantisation_sigma(np.array([0.5]), pixel_type="int", top_code=65535)[0] < 1e-5
+    assert quantisation_sigma(np.array([0.5]), pixel_type="float")[0] == 0
+
+
+# ------------------------------------------------------------------ band weights
+def test_weight_levels_follow_snr():
+    norms = np.array([[1.0, 0.5, 0.01], [0.2, 0.2, 0.2]])
+    variance = np.full((2, 3), 1e-4)
+    levels = weight_levels(norms, variance, np.ones((2, 3), bool))
+    assert levels.tolist() == [[0, -1, -3], [0, 0, 0]]
+
+
+@settings(max_examples=25, deadline=None)
+@given(m=st.sampled_from([3, 5, 8]), seed=st.integers(0, 2 ** 31),
+       levels=st.tuples(st.integers(-2, 0), st.integers(-2, 0), st.just(0)),
+       count=st.sampled_from([20, 400]))
+def test_weighted_matches_are_brute_force_nearest(m, seed, levels, count):
+    """For the weighted distance it defines, every match is the exact nearest entry
+    (grid for large groups, brute force for small ones)."""
+    rng = np.random.default_rng(seed)
+    lights = synth.ring_lights(m, rng.uniform(20, 60), rng.uniform(0.2, 1.0, (m, 3)))
+    gauge_stack, gauge = gauge_for(lights)
+    scene = synth.smiley_surface(64)
+    stack = synth.render(scene, lights, noise=0.01, seed=seed % 1000)
+    sig_s, sig_g = compute_signatures(stack), compute_signatures(gauge_stack)
+    ov = lambda s: (s.signatures.reshape(*s.norms.shape, m) * s.norms[..., None])  # noqa: E731
+    capture = Capture(ov(sig_s), sig_s.band_valid, ov(sig_g),
+                      sig_g.band_valid & gauge.mask[..., None], gauge.normals.reshape(-1, 3),
+                      NoiseModel(0.01, 0.0), 1e-4)
+    ys, xs = np.nonzero(scene.mask & sig_s.valid)
+    pick = rng.choice(len(ys), min(count, len(ys)), replace=False)
+    ys, xs = ys[pick], xs[pick]
+    result = capture.match(ys, xs, (0, 1, 2), levels, tuple(range(m)))
+    w2 = np.exp2(2.0 * np.array(levels))
+    g = sig_g.signatures.reshape(-1, 3, m).astype(np.float64)
+    table = np.flatnonzero((sig_g.valid & gauge.mask).ravel())
+    s = sig_s.signatures[ys, xs].reshape(-1, 3, m).astype(np.float64)
+    d2 = (((s[:, None] - g[table][None]) ** 2).sum(-1) * w2).sum(-1)
+    best = d2.min(axis=1)
+    got = (((s - g[result.rows]) ** 2).sum(-1) * w2).sum(-1)
+    assert np.all(got <= best * (1 + 1e-4) + 1e-6)
+
+
+def test_saturated_colours_under_coloured_lights_fully_solved():
+    """The case of the issue: colour lights, saturated albedo, noise 0.005."""
+    m = 8
+    phase = 2 * np.pi * np.arange(m) / m
+    hue = 0.5 + 0.5 * np.cos(phase[:, None] - np.array([0.0, 2.0, 4.0]) * np.pi / 3)
+    lights = synth.ring_lights(m, 45, 0.1 + 0.9 * hue)
+    scene = synth.smiley_surface(200)
+    stack = synth.render(scene, lights, noise=0.005, seed=1)
+    gauge_stack, gauge = gauge_for(lights, noise=0.005)
+    errors = {}
+    for name, changes in [("mono", dict(mode="mono")), ("unweighted", dict(band_weights=False)),
+                          ("weighted", {})]:
+        result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, **changes)
+        err = np.where(result.solved, angular_error(result.normals, scene.normals), 90.0)
+        errors[name] = float(err[scene.mask].mean())
+        if name == "weighted":
+            assert result.solved[scene.mask].mean() > 0.999
+            rel = np.abs(result.albedo[scene.mask] / scene.albedo[scene.mask] - 1)
+            assert np.nanmedian(rel, axis=0).max() < 0.03, np.nanmedian(rel, axis=0)
+    assert errors["weighted"] <= errors["mono"] and errors["weighted"] < errors["unweighted"]
+
+
+# ------------------------------------------------------------------ light subsets
+def test_cast_shadows_of_the_relief_solved_with_the_light_identified():
+    lights = synth.ring_lights(8, 60)
+    scene = synth.smiley_surface(160, relief=0.2)
+    shadows = synth.shadow_maps(scene, lights)[:, 0]
+    stack = synth.render(scene, lights, cast_shadows=True, noise=0.002, seed=1)
+    gauge_stack, gauge = gauge_for(lights, noise=0.002)
+    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
+    one = (shadows.sum(axis=0) == 1) & scene.mask
+    assert one.sum() > 500
+    lit = np.argmax(shadows[:, one], axis=0).astype(np.uint64)
+    identified = result.dropped_lights[one] == (np.uint64(1) << lit)
+    assert identified.mean() > 0.7
+    err = np.where(result.solved, angular_error(result.normals, scene.normals), 90.0)
+    err_plain = np.where(plain.solved, angular_error(plain.normals, scene.normals), 90.0)
+    assert err[one].mean() < 2.0 < 10 * 2.0 < err_plain[one].mean()
+    assert err[scene.mask].mean() < err_plain[scene.mask].mean()
+    darker = sum(d["darker"] for d in result.stats.dropped_per_light)
+    brighter = sum(d["brighter"] for d in result.stats.dropped_per_light)
+    assert darker >= identified.sum() and darker > 5 * brighter
+    assert darker + brighter >= result.stats.solved_from_light_subset
+
+
+def test_highlights_the_gauge_lacks_are_dropped_as_brighter():
+    lights = synth.ring_lights(8, 45)
+    scene = synth.smiley_surface(140, coloured=False)
+    stack = synth.render(scene, lights, gloss=0.6, shininess=80, noise=0.002, seed=1)
+    gauge_stack, gauge = gauge_for(lights, noise=0.002)
+    spots = synth.highlight_maps(scene, lights, gloss=0.6, shininess=80, level=0.05)[:, 0]
+    one = (spots.sum(axis=0) == 1) & scene.mask
+    assert one.sum() > 100
+    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    which = np.argmax(spots[:, one], axis=0).astype(np.uint64)
+    assert (result.dropped_lights[one] == (np.uint64(1) << which)).mean() > 0.8
+    assert sum(d["brighter"] for d in result.stats.dropped_per_light) > 0.8 * one.sum()
+    err = angular_error(result.normals[one], scene.normals[one])
+    assert np.nanmedian(err) < 1.0
+
+
+def test_never_fewer_than_three_lights():
+    lights = synth.ring_lights(4, 45)
+    scene = synth.smiley_surface(100)
+    stack = synth.render(scene, lights)
+    stack[0, 30:60, 30:60] *= 0.1
+    stack[1, 40:70, 40:70] *= 0.1
+    gauge_stack, gauge = gauge_for(lights)
+    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    assert result.lights_dropped_count.max() <= 1  # 4 lights: one may go, 3 remain
+    assert result.stats.solved_from_light_subset > 0
+
+
+# ------------------------------------------------------------------ auto sphere
+def one_sided_lights(m=6, theta=50.0):
+    phi = np.linspace(0, np.pi, m)
+    t = np.radians(theta)
+    dirs = np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi),
+                     np.full(m, np.cos(t))], axis=1)
+    return synth.Lighting(dirs[:, None, :], np.ones((m, 1, 3)))
+
+
+@pytest.mark.parametrize("radius", [30, 60, 100])
+def test_auto_sphere_on_a_sphere_lit_from_one_side(radius):
+    ball = synth.sphere_surface((2 * radius + 30, 2 * radius + 50), radius,
+                                centre=(radius + 12.3, radius + 20.7))
+    stack = synth.render(ball, one_sided_lights(), noise=0.003)
+    eight_bit = np.round(np.clip(stack, 0, 1) * 255) / 255
+    cx, cy, r = find_sphere(eight_bit)
+    assert abs(cx - (radius + 12.3)) < 1 and abs(cy - (radius + 20.7)) < 1
+    assert abs(r - radius) < 1
+
+
+def test_auto_sphere_refuses_two_spheres_and_none():
+    lights = synth.ring_lights(3, 30)
+    two = sum(synth.render(synth.sphere_surface((100, 220), 40, centre=(cx, 50)), lights)
+              for cx in (50, 160))
+    with pytest.raises(GaugeError, match="two bright regions"):
+        find_sphere(two)
+    square = np.pad(np.ones((3, 40, 40, 3), np.float32), ((0, 0), (20, 20), (20, 20), (0, 0)))
+    with pytest.raises(GaugeError, match="no convincing circle"):
+        find_sphere(square)
+    with pytest.raises(GaugeError, match="too small"):
+        find_sphere(np.ones((3, 1, 1, 3)))
