@@ -34,7 +34,7 @@ __all__ = ["Capture", "GroupResult", "weight_levels", "nearest"]
 #: information of the best band).
 DROP_LEVEL = -3
 #: Groups of fewer pixels are matched by brute force instead of a grid.
-BRUTE_FORCE_PIXELS = 64
+BRUTE_FORCE_PIXELS = 128
 #: Brute force works on blocks of about this many table-times-query values.
 BRUTE_FORCE_BLOCK = 1 << 22
 
@@ -126,6 +126,7 @@ class Capture:
     model: NoiseModel
     min_norm: float
     _light_sets: dict = field(default_factory=dict)
+    _gauge_variance: np.ndarray | None = None
 
     @property
     def images(self) -> int:
@@ -138,12 +139,15 @@ class Capture:
     def light_set(self, lights: tuple[int, ...]) -> _LightSet:
         """The gauge restricted to ``lights`` (computed once per subset)."""
         if lights not in self._light_sets:
+            if self._gauge_variance is None:  # per measurement, computed once
+                self._gauge_variance = self.model.sigma(self.gauge_ov) ** 2
             ov = self.gauge_ov[..., list(lights)]
             sig, norms = unit_rows(ov)
             usable = self.gauge_valid & (norms > self.min_norm)
             sig = np.where(usable[..., None], sig, 0.0).astype(np.float32)
             self._light_sets[lights] = _LightSet(
-                signatures=sig, norm2=norms ** 2, variance=band_variance(ov, self.model),
+                signatures=sig, norm2=norms ** 2,
+                variance=self._gauge_variance[..., list(lights)].mean(axis=-1),
                 resolution=table_resolution(sig, usable.all(axis=-1)), usable=usable)
         return self._light_sets[lights]
 

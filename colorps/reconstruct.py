@@ -527,19 +527,24 @@ class _MatchState:
 
 def _light_subsets(capture: Capture, state: _MatchState, options: Options,
                    model_scale: float) -> None:
-    """Re-match pixels far outside the noise without the light that explains least.
+    """Re-match pixels far outside the noise without the lights that explain least.
 
     A pixel whose residual exceeds SUBSET_TRIGGER is matched again once per
     light it still uses, each time without that light (one table per light
-    subset, band subset and weights, built when first needed; tables of few
-    pixels are brute force). The best of these matches is kept when it lowers
-    the residual to at most SUBSET_GAIN of the old one; the dropped light is
-    "darker" (cast shadow) or "brighter" (highlight, interreflection) than the
-    new match predicts. This repeats up to ``max_dropped_lights`` times; at
-    least MIN_LIGHTS lights remain.
+    subset and band subset, built when first needed; tables of few pixels are
+    brute force), and keeps the best of these when it lowers its residual.
+    This repeats, greedily, up to ``max_dropped_lights`` times (at least
+    MIN_LIGHTS lights remain); in the end a pixel keeps its subset match only
+    if that lowered the residual to at most SUBSET_GAIN of the full match's.
+    A dropped light is "darker" (cast shadow) or "brighter" (highlight,
+    interreflection) than the final match predicts. Subset tables weigh a
+    pixel's usable bands alike: with band weights too, the number of tables
+    would multiply.
     """
     m, n_bands = capture.images, capture.bands
     bits = np.uint64(1) << np.arange(m, dtype=np.uint64)
+    before = dict(row=state.row.copy(), quality=state.quality.copy(),
+                  distance=state.distance.copy())
     for _ in range(options.max_dropped_lights):
         left = m - _popcount(state.dropped)
         candidates = (state.row >= 0) & (state.quality > SUBSET_TRIGGER) & \
@@ -553,14 +558,13 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
         best_distance = np.zeros(len(ys), dtype=np.float32)
         dropped = state.dropped[ys, xs]
         codes = state.bands_used[ys, xs].astype(np.uint64)
-        level_rows = state.levels[ys, xs].astype(np.int64)
         tried = np.zeros((len(ys), m), dtype=bool)
         for light in range(m):
             tried[:, light] = (dropped & bits[light]) == 0
         which_pixel, which_light = np.nonzero(tried)
         keys, inverse = np.unique(
-            np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel],
-                             level_rows[which_pixel]]), axis=0, return_inverse=True)
+            np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel]]),
+            axis=0, return_inverse=True)
         inverse = inverse.ravel()
         order = np.argsort(-np.bincount(inverse), kind="stable")[:MAX_SUBSET_GROUPS]
         for g in order:
@@ -569,8 +573,7 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
             lights_kept = tuple(i for i in range(m) if not int(keys[g, 0]) >> i & 1)
             band_tuple = tuple(k for k in range(n_bands) if int(keys[g, 1]) >> k & 1)
             result = capture.match(ys[pixels], xs[pixels], band_tuple,
-                                   tuple(int(v) for v in keys[g, 2:][list(band_tuple)]),
-                                   lights_kept, grid_n=options.grid_n,
+                                   (0,) * len(band_tuple), lights_kept, grid_n=options.grid_n,
                                    threads=options.threads, sample_size=AUTO_N_SAMPLE)
             state.totals += (result.buckets, result.tests, result.seconds_grid,
                              result.seconds_lookup)
@@ -581,27 +584,35 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
             best_light[chosen] = which_light[pick][better]
             best_rows[chosen] = result.rows[better]
             best_distance[chosen] = result.distance[better]
-        keep = (best_light >= 0) & (best_q <= SUBSET_GAIN * state.quality[ys, xs])
+        keep = best_light >= 0
         if not keep.any():
-            return
+            break
         ky, kx, light = ys[keep], xs[keep], best_light[keep]
         state.row[ky, kx] = best_rows[keep]
         state.quality[ky, kx] = best_q[keep]
         state.distance[ky, kx] = best_distance[keep]
         state.dropped[ky, kx] |= bits[light]
-        # Darker or brighter than the new match predicts?
-        lights = (state.dropped[ky, kx][:, None] & bits) == 0
-        band_mask = ((state.bands_used[ky, kx][:, None] >> np.arange(n_bands)) & 1) == 1
-        z = light_residuals(capture.scene_ov[ky, kx],
-                            capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ky, kx]],
-                            lights, band_mask, capture.model)
-        brighter = z[np.arange(len(ky)), light] > 0
-        state.brighter[ky[brighter], kx[brighter]] |= bits[light[brighter]]
-        for subset in np.unique(state.dropped[ky, kx]):
-            count = int((state.dropped[ky, kx] == subset).sum())
-            state.groups.append(MatchGroup(
-                tuple(range(n_bands)), 0, None, count,
-                tuple(i for i in range(m) if int(subset) >> i & 1)))
+    # Keep a subset match only where it explains the pixel clearly better.
+    revert = (state.dropped != 0) & ~(state.quality <= SUBSET_GAIN * before["quality"])
+    for name, value in before.items():
+        getattr(state, name)[revert] = value[revert]
+    state.dropped[revert] = 0
+    ky, kx = np.nonzero(state.dropped)
+    if not ky.size:
+        return
+    # Darker or brighter than the final match predicts?
+    lights = (state.dropped[ky, kx][:, None] & bits) == 0
+    band_mask = ((state.bands_used[ky, kx][:, None] >> np.arange(n_bands)) & 1) == 1
+    z = light_residuals(capture.scene_ov[ky, kx],
+                        capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ky, kx]],
+                        lights, band_mask, capture.model)
+    brighter = np.zeros(len(ky), dtype=np.uint64)
+    for i in range(m):
+        brighter |= np.where(~lights[:, i] & (z[:, i] > 0), bits[i], np.uint64(0))
+    state.brighter[ky, kx] = brighter
+    for subset, count in zip(*np.unique(state.dropped[ky, kx], return_counts=True)):
+        state.groups.append(MatchGroup(tuple(range(n_bands)), 0, None, int(count),
+                                       tuple(i for i in range(m) if int(subset) >> i & 1)))
 
 
 def _popcount(values: np.ndarray) -> np.ndarray:
