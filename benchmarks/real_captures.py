@@ -93,6 +93,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=256, help="scene size (px)")
     parser.add_argument("--gauge-radius", type=int, default=80, help="sphere radius (px)")
+    parser.add_argument("--figure", metavar="PNG",
+                        help="also draw the cast-shadow scene's maps into this picture")
     args = parser.parse_args(argv)
     r = args.gauge_radius
     size = 2 * r + 10
@@ -133,7 +135,45 @@ def main(argv=None) -> int:
             print(f"| colorps {label} | {solved:.1%} | {mean:.2f} | {median:.2f} | "
                   f"{p95:.2f} | {seconds:.2f} |", flush=True)
         print()
+        if args.figure and "cast shadows" in name:
+            draw(args.figure, stack, gauge_stack, gauge, scene)
     return 0
+
+
+def draw(path, stack, gauge_stack, gauge, scene) -> None:
+    """Scene, quality, dropped lights and errors with and without light subsets."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from colorps.outputs import _dropped_picture
+
+    full = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
+    panels = [
+        ("scene (mean image)", srgb_encode(np.clip(stack.mean(axis=0), 0, 1)), {}),
+        ("quality without subsets\n(residual, noise units)",
+         np.where(scene.mask, plain.quality, np.nan), dict(cmap="magma", vmin=0, vmax=10)),
+        ("lights dropped\n(blue 1, orange 2)", _dropped_picture(full.lights_dropped_count), {}),
+        ("error without subsets (deg)",
+         np.where(plain.solved, angular_error(plain.normals, scene.normals), 90.0),
+         dict(cmap="viridis", vmin=0, vmax=10)),
+        ("error with subsets (deg)",
+         np.where(full.solved, angular_error(full.normals, scene.normals), 90.0),
+         dict(cmap="viridis", vmin=0, vmax=10)),
+    ]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.6))
+    for ax, (title, image, style) in zip(axes, panels):
+        shown = ax.imshow(np.where(scene.mask[..., None] if image.ndim == 3 else scene.mask,
+                                   image, np.nan if image.ndim == 2 else 0), **style)
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+        if style:
+            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":
