@@ -15,6 +15,7 @@ from .errors import ColorPSError
 from .gauge import DEFAULT_ALBEDO
 from .options import FLOAT_DARK_LEVEL, Options
 from .pipeline import integrate_file, reconstruct_files
+from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
 __all__ = ["main", "build_parser"]
 
@@ -236,12 +237,20 @@ def build_parser() -> argparse.ArgumentParser:
     syn.add_argument("--size", type=_positive_int, default=256, help="scene size (px)")
     syn.add_argument("--images", type=_positive_int, default=8, help="number of images m")
     syn.add_argument("--theta", type=float, default=45.0, help="light angle from view (deg)")
-    syn.add_argument("--lights", choices=("white", "colour", "mixed"), default="white",
+    syn.add_argument("--lights", choices=LIGHT_LAYOUTS, default="white",
                      help="white, one coloured light per image, or two colours per image")
     syn.add_argument("--brdf", choices=("lambert", "oren-nayar"), default="lambert")
     syn.add_argument("--noise", type=float, default=0.0, help="Gaussian noise sigma (0..1)")
     syn.add_argument("--gauge-radius", type=float, default=100.0, help="sphere radius (px)")
     syn.add_argument("--seed", type=int, default=0)
+    syn.add_argument("--relief", type=float, default=0.12,
+                     help="height of the eyes in face radii (the mouth is 0.8 of it deep)")
+    syn.add_argument("--cast-shadows", action="store_true",
+                     help="the relief casts shadows (truth in truth_shadows.png)")
+    syn.add_argument("--gloss", type=float, default=0.0,
+                     help="strength of a white highlight the matte gauge does not share")
+    syn.add_argument("--format", dest="file_format", choices=FILE_FORMATS, default="exr",
+                     help="half-float linear EXR, or 8-bit sRGB PNG like a camera's")
     return parser
 
 
@@ -291,7 +300,9 @@ def main(argv=None) -> int:
 
             write_synthetic(args.out, size=args.size, images=args.images, theta=args.theta,
                             lights=args.lights, brdf=args.brdf, noise=args.noise,
-                            gauge_radius=args.gauge_radius, seed=args.seed)
+                            gauge_radius=args.gauge_radius, seed=args.seed,
+                            relief=args.relief, cast_shadows=args.cast_shadows,
+                            gloss=args.gloss, file_format=args.file_format)
             print(f"wrote a synthetic stack with ground truth to {args.out}/")
     except ColorPSError as exc:
         print(f"colorps: error: {exc}", file=sys.stderr)

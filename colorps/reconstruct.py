@@ -365,7 +365,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
                         total=time.perf_counter() - t_start),
     )
     return Reconstruction(normals, albedo, matches.quality, solved, reason,
-                          matches.bands_used, matches.dropped, stats)
+                          matches.bands_used, np.where(solved, matches.dropped, np.uint64(0)),
+                          stats)
 
 
 # ---------------------------------------------------------------- steps

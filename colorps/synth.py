@@ -31,6 +31,7 @@ from .geometry import sphere_normals
 __all__ = [
     "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
     "render", "BRDFS", "mixed_lights", "write_synthetic", "shadow_maps", "highlight_maps",
+    "LIGHT_LAYOUTS", "FILE_FORMATS",
 ]
 
 #: Names of the reflectance models :func:`render` knows.
@@ -395,18 +396,33 @@ def mixed_lights(m: int, theta_deg: float = 45.0) -> Lighting:
     return Lighting(directions, colours)
 
 
-def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float = 45.0,
-                    lights: Literal["white", "colour", "mixed"] = "white",
-                    brdf: Literal["lambert", "oren-nayar"] = "lambert", noise: float = 0.0,
-                    gauge_radius: float = 100.0, seed: int = 0) -> dict:
-    """Render a smiley scene and a sphere gauge to EXR stacks with ground truth.
+#: Light layouts of :func:`write_synthetic` (``colorps synth --lights``).
+LIGHT_LAYOUTS = ("white", "colour", "mixed", "one-sided")
+#: File formats of :func:`write_synthetic`: linear half-float EXR, or 8-bit sRGB PNG.
+FILE_FORMATS = ("exr", "png8")
 
-    Writes ``scene_NN.exr`` and ``gauge_NN.exr`` (half float, linear RGB),
-    ``mask.png`` (the object mask a user would draw, for ``--mask``),
+
+def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float = 45.0,
+                    lights: Literal["white", "colour", "mixed", "one-sided"] = "white",
+                    brdf: Literal["lambert", "oren-nayar"] = "lambert", noise: float = 0.0,
+                    gauge_radius: float = 100.0, seed: int = 0, relief: float = 0.12,
+                    cast_shadows: bool = False, gloss: float = 0.0,
+                    file_format: Literal["exr", "png8"] = "exr") -> dict:
+    """Render a smiley scene and a sphere gauge to image stacks with ground truth.
+
+    Writes ``scene_NN`` and ``gauge_NN`` images (``file_format`` "exr": half
+    float, linear RGB; "png8": 8-bit sRGB PNG, as a camera's JPEG or PNG would
+    be), ``mask.png`` (the object mask a user would draw, for ``--mask``),
     ``truth_normal.exr``, ``truth_albedo.exr``, ``truth_height.exr`` (pixels,
-    NaN outside), ``truth_mask.png`` and
-    ``sample.json`` (every parameter, the light directions and colours, and the
-    gauge sphere geometry) into ``out_dir``.
+    NaN outside), ``truth_mask.png``, ``truth_shadows.png`` (with
+    ``cast_shadows``: bit i set where light i is blocked, as 8-bit codes for up
+    to 8 images) and ``sample.json`` (every parameter, the light directions and
+    colours, and the gauge sphere geometry) into ``out_dir``.
+
+    Lights: "white" ring lights at ``theta`` from the view axis; "colour" one
+    coloured light per image; "mixed" two colours per image; "one-sided" white
+    lights over half the azimuths only (0-180 degrees: the lower rim of the
+    sphere stays dark in every image, as in many real captures).
 
     Returns
     -------
@@ -416,7 +432,7 @@ def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float =
     import json
     from pathlib import Path
 
-    from .io import write_image
+    from .io import srgb_encode, write_image
 
     if lights == "white":
         lighting = ring_lights(images, theta)
@@ -426,20 +442,31 @@ def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float =
         lighting = ring_lights(images, theta, 0.1 + 0.9 * hue)
     elif lights == "mixed":
         lighting = mixed_lights(images, theta)
+    elif lights == "one-sided":
+        phi = np.linspace(0.0, np.pi, images)
+        t = np.deg2rad(theta)
+        dirs = np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi),
+                         np.full(images, np.cos(t))], axis=1)
+        lighting = Lighting(dirs[:, None, :], np.ones((images, 1, 3)))
     else:
-        raise InputError(f"lights: expected 'white', 'colour' or 'mixed', got {lights!r}")
+        raise InputError(f"lights: expected one of {LIGHT_LAYOUTS}, got {lights!r}")
+    if file_format not in FILE_FORMATS:
+        raise InputError(f"file_format: expected one of {FILE_FORMATS}, got {file_format!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    scene = smiley_surface(size)
+    scene = smiley_surface(size, relief=relief)
     gsize = int(np.ceil(2 * gauge_radius + 10))
     gauge = sphere_surface(gsize, gauge_radius)
-    scene_stack = render(scene, lighting, brdf=brdf, noise=noise, seed=seed)
+    scene_stack = render(scene, lighting, brdf=brdf, noise=noise, seed=seed,
+                         cast_shadows=cast_shadows, gloss=gloss)
     gauge_stack = render(gauge, lighting, brdf=brdf, noise=noise, seed=seed + 1)
     for k in range(images):
-        write_image(out / f"scene_{k:02d}.exr", scene_stack[k], dtype="half",
-                    channel_names=["R", "G", "B"])
-        write_image(out / f"gauge_{k:02d}.exr", gauge_stack[k], dtype="half",
-                    channel_names=["R", "G", "B"])
+        for name, stack in (("scene", scene_stack), ("gauge", gauge_stack)):
+            if file_format == "exr":
+                write_image(out / f"{name}_{k:02d}.exr", stack[k], dtype="half",
+                            channel_names=["R", "G", "B"])
+            else:
+                write_image(out / f"{name}_{k:02d}.png", srgb_encode(stack[k]), dtype="uint8")
     normals = np.where(scene.mask[..., None], scene.normals, np.nan)
     write_image(out / "truth_normal.exr", normals, channel_names=["X", "Y", "Z"])
     write_image(out / "truth_albedo.exr", np.where(scene.mask[..., None], scene.albedo, np.nan),
@@ -447,10 +474,15 @@ def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float =
     write_image(out / "truth_mask.png", scene.mask.astype(np.float32), dtype="uint8")
     write_image(out / "truth_height.exr", scene.height, channel_names=["Z"])
     write_image(out / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    if cast_shadows and images <= 8:
+        blocked = shadow_maps(scene, lighting).any(axis=1)
+        code = (blocked * (1 << np.arange(images))[:, None, None]).sum(axis=0)
+        write_image(out / "truth_shadows.png", code / 255.0, dtype="uint8")
     centre = (gsize - 1) / 2.0
     info = dict(
         made_by="colorps synth", size=size, images=images, theta_deg=theta, lights=lights,
-        brdf=brdf, noise=noise, seed=seed, gauge_albedo=1.0,
+        brdf=brdf, noise=noise, seed=seed, relief=relief, cast_shadows=cast_shadows,
+        gloss=gloss, file_format=file_format, gauge_albedo=1.0,
         gauge_sphere=dict(cx=centre, cy=centre, r=gauge_radius),
         light_directions=lighting.directions.tolist(), light_colours=lighting.colours.tolist(),
     )

@@ -189,3 +189,35 @@ def test_auto_sphere_refuses_two_spheres_and_none():
         find_sphere(square)
     with pytest.raises(GaugeError, match="too small"):
         find_sphere(np.ones((3, 1, 1, 3)))
+
+
+# ------------------------------------------------------------------ files, end to end
+def test_8bit_one_sided_capture_with_defaults_and_auto_sphere(tmp_path):
+    """Like the real captures of the issue: 12 lights from one side, 8-bit sRGB PNGs,
+    cast shadows, noise; default options and --sphere auto."""
+    import json
+
+    from colorps.cli import main
+    from colorps.io import read_image, read_mask
+    from colorps.synth import write_synthetic
+
+    data = tmp_path / "capture"
+    write_synthetic(data, size=160, images=12, theta=50, lights="one-sided", noise=0.003,
+                    relief=0.2, cast_shadows=True, file_format="png8", gauge_radius=50)
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--scene", str(data / "scene_*.png"), "--gauge",
+                 str(data / "gauge_*.png"), "--sphere", "auto", "--mask",
+                 str(data / "mask.png"), "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    stats = report["statistics"]
+    assert abs(report["sphere"]["r"] - 50) < 1 and report["sphere_found_automatically"]
+    assert stats["noise"]["pixel_type"] == "int" and stats["noise"]["estimated"]
+    mask = read_mask(data / "mask.png", (160, 160))
+    normals, _ = read_image(out / "normal.exr")
+    truth, _ = read_image(data / "truth_normal.exr")
+    solved = np.isfinite(normals[..., 0]) & mask
+    assert solved.sum() >= 0.98 * mask.sum()
+    assert np.median(angular_error(normals[solved], truth[solved])) < 1.0
+    assert stats["solved_from_light_subset"] > 0
+    lights = read_image(out / "lights.exr")[0][..., 0]
+    assert (lights[mask] > 0).sum() == stats["solved_from_light_subset"]

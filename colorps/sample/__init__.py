@@ -94,7 +94,8 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
     info = json.loads(info_path.read_text())
     g = info["gauge_sphere"]
     mask = folder / "mask.png"
-    result = reconstruct_files(str(folder / "scene_*.exr"), str(folder / "gauge_*.exr"),
+    ext = {"exr": "exr", "png8": "png"}[info.get("file_format", "exr")]
+    result = reconstruct_files(str(folder / f"scene_*.{ext}"), str(folder / f"gauge_*.{ext}"),
                                (g["cx"], g["cy"], g["r"]), out,
                                gauge_albedo=info["gauge_albedo"],
                                mask_path=mask if mask.exists() else None,
