@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import warnings
 from dataclasses import fields
@@ -204,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also refuse pixels whose plain signature distance per band "
                           "exceeds D (colorps 0.1's threshold) "
                           f"(default: {_shown(_DEFAULTS.max_distance)})")
+    rec.add_argument("--max-input-gib", type=_positive_float, default=_DEFAULTS.max_input_gib,
+                     metavar="G", help="refuse a stack that would take more than G GiB "
+                                       "decoded (checked from the headers, before decoding)")
     rec.add_argument("--no-height", dest="height", action="store_false",
                      help="skip the height map, relief and overview pictures")
     rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
@@ -254,6 +258,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C: every temporary file is removed on the way out."""
+
+
+def _terminate(signum, frame):
+    raise _Terminated
+
+
 def _warning_line(message, category, filename, lineno, line=None):
     return f"colorps: warning: {message}\n"
 
@@ -262,13 +274,14 @@ def main(argv=None) -> int:
     """Run ``colorps`` with ``argv`` (default: sys.argv); return the exit code.
 
     0 on success, 1 for an error colorps reports (one line on stderr), 2 for
-    malformed arguments, 130 when interrupted.
+    malformed arguments, 130 when interrupted (Ctrl-C), 143 on SIGTERM.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "reconstruct" and args.mesh and not args.height:
         parser.error("--mesh needs the height map; drop --no-height")
     warnings.formatwarning = _warning_line
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         if args.command == "reconstruct":
             options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
@@ -307,9 +320,14 @@ def main(argv=None) -> int:
     except ColorPSError as exc:
         print(f"colorps: error: {exc}", file=sys.stderr)
         return 1
+    except _Terminated:
+        print("colorps: terminated; no partial results were written", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("colorps: interrupted; no partial results were written", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
 
 

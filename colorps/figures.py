@@ -47,7 +47,8 @@ def shaded_relief(height, *, azimuth_deg: float = 135.0, elevation_deg: float = 
     nearest = ndimage.distance_transform_edt(~inside, return_distances=False,
                                              return_indices=True)
     filled = z[tuple(nearest)]
-    drow, dx = np.gradient(filled)
+    drow = np.gradient(filled, axis=0) if z.shape[0] > 1 else np.zeros_like(filled)
+    dx = np.gradient(filled, axis=1) if z.shape[1] > 1 else np.zeros_like(filled)
     normal = np.stack([-dx, drow, np.ones_like(dx)], axis=-1)  # y up: dz/dy = -dz/drow
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
     az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)

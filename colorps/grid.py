@@ -36,6 +36,11 @@ SKETCH_AXES = 15
 AUTO_N_FACTORS = (0.25, 0.5, 1.0, 2.0)
 AUTO_N_MAX_SAMPLE = 4000
 AUTO_N_REPEATS = 3
+#: Largest grid: N^2 cells may not exceed max(MAX_CELLS_PER_ENTRY K, MIN_CELL_LIMIT)
+#: (each cell costs about 20 bytes; the default N gives 4 cells per entry, and
+#: larger grids only slow lookups down).
+MAX_CELLS_PER_ENTRY = 1024
+MIN_CELL_LIMIT = 1 << 20
 #: Queries numba hands to a thread at a time (lookup cost varies over an
 #: image: noisy or unlit regions), in units of the kernel's QUERY_CHUNK.
 THREAD_CHUNKS = 4
@@ -390,6 +395,12 @@ class BucketGrid:
             n = default_n(table.shape[0])
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise InputError(f"n: expected a positive integer, 'auto' or None, got {n!r}")
+        limit = max(MAX_CELLS_PER_ENTRY * table.shape[0], MIN_CELL_LIMIT)
+        if int(n) ** 2 > limit:
+            raise InputError(
+                f"n: a {n} x {n} grid ({int(n) ** 2 * 20 / 2 ** 30:.1f} GiB of cells) is far "
+                f"too fine for {table.shape[0]} table entries; at most N = "
+                f"{int(np.sqrt(limit))} (default {default_n(table.shape[0])})")
         self._build(table, int(n))
 
     # ------------------------------------------------------------------ build

@@ -22,6 +22,7 @@ import glob
 import os
 import tempfile
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Sequence
 
@@ -30,7 +31,8 @@ import numpy as np
 from .errors import ImageReadError, InputError, OutputError
 from .options import FLOAT_DARK_LEVEL
 
-__all__ = ["read_image", "read_stack", "read_mask", "write_image", "expand_paths",
+__all__ = ["read_image", "read_stack", "read_mask", "read_info", "ImageInfo",
+           "check_stack_files", "write_image", "expand_paths", "file_mode",
            "srgb_decode", "srgb_encode", "input_levels", "noise_base", "LossyInputWarning",
            "Encoding"]
 
@@ -61,18 +63,106 @@ def _open_input(path: Path):
     return inp
 
 
+def file_mode(directory: bool = False) -> int:
+    """Permission bits a new file (or folder) gets under the current umask."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return (0o777 if directory else 0o666) & ~mask
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What an image file's header says (nothing decoded).
+
+    Attributes
+    ----------
+    path : Path
+    width, height, channels : int
+        Size in pixels; channels without alpha.
+    pixel_type : str
+        OpenImageIO's name of the stored type ("uint8", "uint16", "half", "float", ...).
+    """
+
+    path: Path
+    width: int
+    height: int
+    channels: int
+    pixel_type: str
+
+    @property
+    def decoded_bytes(self) -> int:
+        """Bytes of the image decoded to float32."""
+        return self.width * self.height * self.channels * 4
+
+
+def read_info(path) -> ImageInfo:
+    """Read an image file's header only: size, channels and pixel type."""
+    path = Path(path)
+    inp = _open_input(path)
+    try:
+        spec = inp.spec()
+        alpha = 1 if spec.alpha_channel >= 0 else 0
+        return ImageInfo(path, int(spec.width), int(spec.height),
+                         int(spec.nchannels) - alpha, str(spec.format))
+    finally:
+        inp.close()
+
+
+def check_stack_files(paths: Sequence, *, name: str = "stack",
+                      max_bytes: float | None = None) -> list[ImageInfo]:
+    """Check a stack's headers before any pixel is decoded.
+
+    Every file must have the size, channel count and pixel type of the first
+    (so clip and dark levels, which follow from the pixel type, hold for every
+    file), and the decoded stack must fit in ``max_bytes``.
+
+    Raises
+    ------
+    ImageReadError
+        A file is unreadable or differs from the first (the message names both).
+    InputError
+        The decoded stack would exceed ``max_bytes``.
+    """
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ImageReadError(f"{name}: no images given")
+    infos = [read_info(p) for p in paths]
+    first = infos[0]
+    for info in infos[1:]:
+        if (info.width, info.height, info.channels) != (first.width, first.height,
+                                                        first.channels):
+            raise ImageReadError(
+                f"{info.path}: size {info.width}x{info.height} with {info.channels} "
+                f"channel(s) differs from {first.path} ({first.width}x{first.height} with "
+                f"{first.channels})")
+        if info.pixel_type != first.pixel_type:
+            raise ImageReadError(
+                f"{info.path}: pixel type {info.pixel_type} differs from {first.path} "
+                f"({first.pixel_type}); clip and dark levels follow from the pixel type, "
+                "so every image of a stack must be stored alike")
+    total = sum(i.decoded_bytes for i in infos)
+    if max_bytes is not None and total > max_bytes:
+        raise InputError(
+            f"{first.path}: the {name} stack ({len(infos)} images of {first.width}x"
+            f"{first.height}x{first.channels}) would need {total / 2 ** 30:.1f} GiB decoded, "
+            f"more than the limit of {max_bytes / 2 ** 30:.1f} GiB (--max-input-gib)")
+    return infos
+
+
 @contextlib.contextmanager
 def atomic_target(path):
     """Yield a temporary path beside ``path``; move it onto ``path`` on success.
 
-    On any error (or Ctrl-C) the temporary file is removed and ``path`` is left
-    as it was.
+    On any error (or Ctrl-C, or SIGTERM turned into one by the CLI) the
+    temporary file is removed and ``path`` is left as it was. The file gets
+    the permissions of a new file under the umask, not mkstemp's 0600.
     """
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, file_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -208,20 +298,25 @@ def read_mask(path, shape: tuple[int, int]) -> np.ndarray:
 
 
 def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "stack",
-               progress: bool = False) -> tuple[np.ndarray, list[str]]:
-    """Read images that share size and channel count into a (m, H, W, c) stack.
+               progress: bool = False,
+               max_bytes: float | None = None) -> tuple[np.ndarray, list[str]]:
+    """Read images that share size, channels and pixel type into a (m, H, W, c) stack.
+
+    All headers are checked first (:func:`check_stack_files`), so a file that
+    does not fit is refused before any pixel is decoded.
 
     Raises
     ------
     ImageReadError
-        When a file cannot be read, or differs in size or channels from the
-        first one (the message names both).
+        When a file cannot be read, or differs in size, channels or pixel type
+        from the first one (the message names both).
+    InputError
+        When the decoded stack would exceed ``max_bytes``.
     """
     from tqdm.auto import tqdm
 
     paths = [Path(p) for p in paths]
-    if not paths:
-        raise ImageReadError(f"{name}: no images given")
+    check_stack_files(paths, name=name, max_bytes=max_bytes)
     first, names = None, None
     images = []
     for path in tqdm(paths, desc=f"reading {name}", disable=not progress, leave=False):
@@ -283,7 +378,9 @@ def expand_paths(patterns: str | Sequence[str], *, name: str = "images") -> list
     """Expand quoted globs, plain paths and ``@list.txt`` files, naturally sorted.
 
     Each pattern is expanded and naturally sorted on its own (``img2`` before
-    ``img10``); the results are concatenated in the order given. A list file
+    ``img10``); the results are concatenated in the order given. A path that
+    exists is taken as it is, even when its name holds glob characters
+    (``shot [0].exr``). A list file
     holds one path per line (relative to the list file; ``#`` starts a comment).
 
     Raises
@@ -308,7 +405,7 @@ def expand_paths(patterns: str | Sequence[str], *, name: str = "images") -> list
                 if line:
                     p = Path(line)
                     paths.append(p if p.is_absolute() else listing.parent / p)
-        elif glob.has_magic(pattern):
+        elif glob.has_magic(pattern) and not Path(pattern).exists():
             matches = natsorted(glob.glob(pattern))
             if not matches:
                 raise ImageReadError(f"{name}: pattern {pattern!r} matches no file")

@@ -114,8 +114,11 @@ class Capture:
         Usable bands of gauge pixels inside the gauge mask.
     gauge_normals : (Hg * Wg, 3) ndarray
     model : NoiseModel
+        Of the scene's measurements.
     min_norm : float
         Smallest usable OV norm over any light subset.
+    gauge_model : NoiseModel, optional
+        Of the gauge's measurements, when its files differ from the scene's.
     """
 
     scene_ov: np.ndarray
@@ -125,6 +128,7 @@ class Capture:
     gauge_normals: np.ndarray
     model: NoiseModel
     min_norm: float
+    gauge_model: NoiseModel | None = None
     _light_sets: dict = field(default_factory=dict)
     _gauge_variance: np.ndarray | None = None
 
@@ -140,7 +144,8 @@ class Capture:
         """The gauge restricted to ``lights`` (computed once per subset)."""
         if lights not in self._light_sets:
             if self._gauge_variance is None:  # per measurement, computed once
-                self._gauge_variance = self.model.sigma(self.gauge_ov) ** 2
+                model = self.gauge_model or self.model
+                self._gauge_variance = model.sigma(self.gauge_ov) ** 2
             ov = self.gauge_ov[..., list(lights)]
             sig, norms = unit_rows(ov)
             usable = self.gauge_valid & (norms > self.min_norm)

@@ -96,6 +96,9 @@ class Options:
         overview pictures.
     mesh : {None, "ply", "obj", "both"}
         Files only: also write a mesh of the height field (needs ``height``).
+    max_input_gib : float
+        Files only: refuse a stack whose decoded pixels (float32) would take
+        more than this many GiB, before decoding any (headers are read first).
 
     Examples
     --------
@@ -121,6 +124,7 @@ class Options:
     encoding: Literal["auto", "linear", "srgb"] = "auto"
     height: bool = True
     mesh: Literal["ply", "obj", "both"] | None = None
+    max_input_gib: float = 8.0
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -160,6 +164,8 @@ class Options:
                              f"got {self.encoding!r}")
         if self.mesh not in _MESHES:
             raise InputError(f"mesh: expected 'ply', 'obj', 'both' or None, got {self.mesh!r}")
+        if not _is_positive(self.max_input_gib):
+            raise InputError(f"max_input_gib: expected a value > 0, got {self.max_input_gib!r}")
         if self.mesh is not None and not self.height:
             raise InputError("mesh: a mesh needs the height map (height=True)")
 

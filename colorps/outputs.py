@@ -27,13 +27,14 @@ mesh.ply/.obj   triangle mesh of the height field with albedo vertex colours,
                 when asked for
 ==============  ==============================================================
 
-Files are first written to a temporary folder inside the output folder and only
-moved into place once all of them were written, so a failed or interrupted run
-leaves no half-written result.
+Files are first written to a new folder beside the output folder, which then
+takes its place in one rename (see ``_write_folder``), so a failed or
+interrupted run leaves no half-written result and no temporary files.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -45,7 +46,7 @@ import numpy as np
 
 from .errors import OutputError
 from .figures import as_rgb, overview, shaded_relief
-from .io import srgb_encode, write_image
+from .io import file_mode, srgb_encode, write_image
 from .reasons import Reason, reason_picture
 from .reconstruct import Reconstruction
 
@@ -136,21 +137,91 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     if mesh and result.height is None:
         raise OutputError("a mesh needs the height map; integrate the normals first")
     writers = _writers(result, channel_names, scene_preview, report, mesh)
-    out = prepare_output_dir(out_dir, overwrite=overwrite, create=True)
+    out = prepare_output_dir(out_dir, overwrite=overwrite)
+    return _write_folder(out, writers)
+
+
+def _write_folder(out: Path, writers: dict) -> list[Path]:
+    """Write every file into a new folder beside ``out``, then swap it in.
+
+    A new ``out`` appears whole, by one rename. An existing one that holds only
+    colorps results is exchanged with the new folder in one atomic rename
+    (``renameat2(RENAME_EXCHANGE)``; two renames where the system lacks it),
+    so an interruption leaves either the old results or the new ones. If it
+    holds other files too, only the result files are replaced, one by one.
+    On any failure nothing is left behind: not the new folder, not the
+    parents made for it, and an existing ``out`` is untouched.
+    """
+    out = out.absolute()
+    made = _make_parents(out.parent)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=".colorps-", dir=out))
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.colorps-", dir=out.parent))
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
+        try:
+            for name, write in writers.items():
+                try:
+                    write(tmp / name)
+                except OSError as exc:
+                    raise OutputError(f"{out}: cannot write {name} "
+                                      f"({exc.strerror or exc})") from None
+            os.chmod(tmp, file_mode(directory=True))
+            if not out.exists():
+                os.rename(tmp, out)
+            elif {p.name for p in out.iterdir()} <= set(_ALL_FILES):
+                _exchange(tmp, out)
+                shutil.rmtree(tmp, ignore_errors=True)  # now the old results
+            else:
+                for name in writers:
+                    os.replace(tmp / name, out / name)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+    return [out / name for name in writers]
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """Create ``folder`` and missing parents; return those made, outermost first."""
+    missing = []
+    while not folder.exists():
+        missing.append(folder)
+        folder = folder.parent
+    made = []
+    try:
+        for path in reversed(missing):
+            path.mkdir()
+            made.append(path)
     except OSError as exc:
-        raise OutputError(f"{out}: cannot write ({exc.strerror})") from None
+        for path in reversed(made):
+            with contextlib.suppress(OSError):
+                path.rmdir()
+        raise OutputError(f"{missing[0]}: cannot create folder ({exc.strerror})") from None
+    return made
+
+
+def _exchange(a: Path, b: Path) -> None:
+    """Swap two folders atomically where Linux allows it, else by two renames."""
+    import ctypes
+
     try:
-        for name, write in writers.items():
-            write(tmp / name)
-        written = []
-        for name in writers:
-            os.replace(tmp / name, out / name)
-            written.append(out / name)
-        return written
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        renameat2 = None
+    if renameat2 is not None:
+        at_fdcwd, rename_exchange = -100, 2
+        if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b),
+                     rename_exchange) == 0:
+            return
+    old = b.with_name(f".{b.name}.colorps-old-{os.getpid()}")
+    os.rename(b, old)
+    os.rename(a, b)
+    os.rename(old, a)
 
 
 def check_height_targets(out, mesh=None, *, overwrite: bool = False) -> None:

@@ -12,6 +12,8 @@ import time
 from pathlib import Path
 from typing import Literal, Sequence
 
+import numpy as np
+
 from . import __version__
 from .errors import InputError
 from .gauge import DEFAULT_ALBEDO
@@ -19,6 +21,11 @@ from .options import Options
 from .reconstruct import Reconstruction
 
 __all__ = ["reconstruct_files", "integrate_file"]
+
+#: A normal map's finite pixels must be unit vectors within this (half-float
+#: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
+UNIT_TOLERANCE = 0.01
+MAX_NON_UNIT_FRACTION = 0.01
 
 
 def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str | Sequence[str],
@@ -55,7 +62,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
     """
     from .gauge import Gauge, find_sphere
     from .integrate import integrate, weights_from_quality
-    from .io import expand_paths, input_levels, noise_base, read_mask, read_stack
+    from .io import (check_stack_files, expand_paths, input_levels, noise_base, read_mask,
+                     read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
 
@@ -66,19 +74,33 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
     if len(scene_paths) != len(gauge_paths):
         raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
                          f"{len(gauge_paths)}; they are paired in order")
+    # Every header first: sizes, channels, pixel types and memory, before any pixel.
+    limit = options.max_input_gib * 2 ** 30
+    scene_info = check_stack_files(scene_paths, name="scene", max_bytes=limit)[0]
+    gauge_info = check_stack_files(gauge_paths, name="gauge", max_bytes=limit)[0]
+    if gauge_info.channels != scene_info.channels:
+        raise InputError(f"{gauge_paths[0]}: has {gauge_info.channels} channel(s) but "
+                         f"{scene_paths[0]} has {scene_info.channels}")
+    mask = None
+    if mask_path is not None:
+        mask = read_mask(mask_path, (scene_info.height, scene_info.width))
+        if not mask.any():
+            raise InputError(f"{mask_path}: the mask selects no pixel (non-zero = solve)")
     scene, names = read_stack(scene_paths, options.encoding, name="scene", progress=progress)
     gauge_stack, _ = read_stack(gauge_paths, options.encoding, name="gauge",
                                 progress=progress)
-    if gauge_stack.shape[3] != scene.shape[3]:
-        raise InputError(f"{gauge_paths[0]}: has {gauge_stack.shape[3]} channel(s) but "
-                         f"{scene_paths[0]} has {scene.shape[3]}")
+    # Levels and quantisation belong to each stack's files (checked alike above).
+    gauge_levels = options.with_levels(*input_levels(gauge_paths[0], options.encoding))
     options = options.with_levels(*input_levels(scene_paths[0], options.encoding))
     found = find_sphere(gauge_stack) if sphere == "auto" else tuple(sphere)
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
-    mask = None if mask_path is None else read_mask(mask_path, scene.shape[1:3])
 
     result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
-                         noise=noise_base(scene_paths[0], options.encoding), progress=progress)
+                         noise=noise_base(scene_paths[0], options.encoding),
+                         gauge_noise=noise_base(gauge_paths[0], options.encoding),
+                         gauge_levels=(gauge_levels.clip_level, gauge_levels.dark_level),
+                         progress=progress)
+    _check_solved(result, scene_paths, gauge_paths, mask_path)
     if options.height:
         t0 = time.perf_counter()
         height = integrate(result.normals, result.solved,
@@ -91,10 +113,29 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
         sphere_found_automatically=sphere == "auto", gauge_albedo=gauge_albedo,
         mask=None if mask_path is None else str(mask_path), channels=names,
         options=options.as_dict(),
+        gauge_levels=dict(clip_level=gauge_levels.clip_level,
+                          dark_level=gauge_levels.dark_level),
     )
     save_reconstruction(result, out, channel_names=names, scene_preview=scene.mean(axis=0),
                         report=report, mesh=options.mesh_kinds, overwrite=overwrite)
     return result
+
+
+def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:
+    """Refuse a run that solved nothing, saying why."""
+    stats = result.stats
+    if stats.solved:
+        return
+    reasons = {k: v for k, v in stats.pixels_by_reason.items() if v and k != "background"}
+    where = f"mask {mask_path}" if mask_path else "the scene"
+    if stats.table_size == 0:
+        raise InputError(f"{gauge_paths[0]}: no gauge pixel has every band usable "
+                         "(clipped, too dark or invalid), so nothing can be matched; check "
+                         "the gauge images and --sphere")
+    worst = max(reasons, key=reasons.get) if reasons else "background"
+    raise InputError(f"{scene_paths[0]}: no pixel of {where} could be solved (mostly "
+                     f"'{worst}': {reasons.get(worst, 0)} pixels); see --dark-level, "
+                     "--clip-level and --max-residual")
 
 
 def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
@@ -129,7 +170,20 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
     if normals.shape[2] < 3:
         raise InputError(f"{normals_path}: a normal map needs 3 channels (X, Y, Z), "
                          f"got {normals.shape[2]}")
+    if normals.shape[2] > 4:
+        raise InputError(f"{normals_path}: a normal map has 3 channels (X, Y, Z), got "
+                         f"{normals.shape[2]}")
     normals = normals[..., :3]
+    finite = np.isfinite(normals).all(axis=-1)
+    if not finite.any():
+        raise InputError(f"{normals_path}: holds no finite normal (all NaN or Inf)")
+    length = np.linalg.norm(normals[finite], axis=-1)
+    off = np.abs(length - 1.0) > UNIT_TOLERANCE
+    if off.mean() > MAX_NON_UNIT_FRACTION:
+        raise InputError(
+            f"{normals_path}: is not a normal map: {off.mean():.0%} of its finite pixels "
+            f"are not unit vectors (median length {np.median(length):.3g}); colorps writes "
+            "normal.exr with X, Y, Z of unit length")
     mask = None if mask_path is None else read_mask(mask_path, normals.shape[:2])
     weights = None
     if weights_path is not None:

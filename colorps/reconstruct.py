@@ -35,7 +35,7 @@ from .residuals import band_variance, light_residuals
 from .signatures import SignatureSet, compute_signatures, measurement_flags
 
 __all__ = ["Reconstruction", "ReconstructionStats", "MatchGroup", "Timings", "reconstruct",
-           "GaugeWarning"]
+           "GaugeWarning", "LowSolvedWarning"]
 
 # ---------------------------------------------------------------- tuning
 #: Side (pixels) of the tiles in which pixels are looked up. Neighbouring pixels
@@ -46,6 +46,8 @@ LOOKUP_TILE = 32
 AUTO_N_SAMPLE = 4000
 #: Below this fraction of usable gauge pixels a GaugeWarning is raised.
 GAUGE_USABLE_WARNING = 0.8
+#: Below this fraction of the masked pixels solved, a LowSolvedWarning is raised.
+LOW_SOLVED_FRACTION = 0.5
 #: A band subset needs at least this many usable gauge pixels to get a table.
 MIN_TABLE_ENTRIES = 3
 #: Least squares albedo (some measurements unusable) needs the usable ones to
@@ -64,6 +66,10 @@ MAX_SUBSET_GROUPS = 128
 
 class GaugeWarning(UserWarning):
     """The capture may not fix the normals (gauge losing pixels, too few images)."""
+
+
+class LowSolvedWarning(UserWarning):
+    """Less than LOW_SOLVED_FRACTION of the masked pixels were solved."""
 
 
 @dataclass(frozen=True)
@@ -143,6 +149,8 @@ class ReconstructionStats:
     max_residual, max_distance : float or None
     gauge_usable_fraction : float
         Fraction of the gauge mask with every band usable.
+    warnings : tuple of str
+        What the run warned about (also issued as Python warnings).
     seconds : Timings
     """
 
@@ -172,6 +180,7 @@ class ReconstructionStats:
     max_residual: float | None
     max_distance: float | None
     gauge_usable_fraction: float
+    warnings: tuple[str, ...]
     seconds: Timings
 
     def as_dict(self) -> dict:
@@ -242,8 +251,10 @@ class Reconstruction:
 
 
 def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
-                mask=None, noise: NoiseModel | None = None, progress: bool = False,
-                **changes) -> Reconstruction:
+                mask=None, noise: NoiseModel | None = None,
+                gauge_noise: NoiseModel | None = None,
+                gauge_levels: tuple[float | None, float] | None = None,
+                progress: bool = False, **changes) -> Reconstruction:
     """Recover normals and intrinsic colour of a scene from a gauge.
 
     Parameters
@@ -264,6 +275,9 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         The data's pixel type and encoding (quantisation), and the read noise
         and gain to start from (default: floating-point data). "auto" fields of
         ``options`` are fitted to the gauge.
+    gauge_noise, gauge_levels : optional
+        The gauge's pixel type (a NoiseModel) and (clip, dark) levels, when its
+        files are stored differently from the scene's (default: the scene's).
     progress : bool, optional
         Show a progress bar.
     **changes
@@ -306,17 +320,24 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     signature_options = dict(band=options.band, colourspace=options.colourspace,
                              min_norm=min_norm, clip_level=options.clip_level)
     scene_sig = compute_signatures(scene, options.mode, **signature_options)
+    if gauge_levels is not None:
+        signature_options.update(clip_level=gauge_levels[0],
+                                 min_norm=dark_threshold(gauge_levels[1], m))
     gauge_sig = compute_signatures(gauge_stack, options.mode, **signature_options)
     usable_gauge = float((gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum())
+    said = []
     if usable_gauge < GAUGE_USABLE_WARNING:
-        warnings.warn(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
-                      "(clipped, too dark or invalid): check the gauge's exposure",
-                      GaugeWarning, stacklevel=2)
-    model = _noise_model(gauge_stack, gauge, gauge_sig, options, noise)
+        said.append(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
+                    "(clipped, too dark or invalid): check the gauge's exposure")
+        warnings.warn(said[-1], GaugeWarning, stacklevel=2)
+    gauge_model = _noise_model(gauge_stack, gauge, gauge_sig, options, gauge_noise or noise)
+    model = dataclasses.replace(noise or gauge_model, read=gauge_model.read,
+                                gain=gauge_model.gain, estimated=gauge_model.estimated)
     capture = Capture(
         scene_ov=_ov(scene_sig), scene_valid=scene_sig.band_valid,
         gauge_ov=_ov(gauge_sig), gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
-        gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm)
+        gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
+        gauge_model=gauge_model)
     t_signatures = time.perf_counter() - t0
 
     matches = _match(capture, mask, options, progress)
@@ -334,6 +355,13 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
                              gauge_stack.reshape(m, -1, c)[:, matches.row[solved]],
                              gauge_albedo, options.clip_level, excluded=dropped_lights)
     reason = _reasons(scene_sig, mask, solved, matched, matches.dropped)
+    n_masked = int(mask.sum())
+    if n_masked and 0 < solved.sum() < LOW_SOLVED_FRACTION * n_masked:
+        counts = reason_counts(reason[mask & ~solved])
+        worst = max(counts, key=counts.get)
+        said.append(f"only {solved.sum() / n_masked:.0%} of the {n_masked} masked pixels "
+                    f"were solved (mostly '{worst}': {counts[worst]} pixels)")
+        warnings.warn(said[-1], LowSolvedWarning, stacklevel=2)
 
     n_bands = scene_sig.bands
     full = (1 << n_bands) - 1
@@ -359,7 +387,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         residual_median=float(np.median(q)) if q.size else None,
         residual_p95=float(np.percentile(q, 95)) if q.size else None,
         max_residual=options.max_residual, max_distance=options.max_distance,
-        gauge_usable_fraction=usable_gauge,
+        gauge_usable_fraction=usable_gauge, warnings=tuple(said),
         seconds=Timings(signatures=t_signatures, grid=matches.seconds_grid,
                         lookup=matches.seconds_lookup,
                         total=time.perf_counter() - t_start),
