@@ -266,8 +266,8 @@ def _terminate(signum, frame):
     raise _Terminated
 
 
-def _warning_line(message, category, filename, lineno, line=None):
-    return f"colorps: warning: {message}\n"
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"colorps: warning: {message}", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -280,8 +280,14 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.command == "reconstruct" and args.mesh and not args.height:
         parser.error("--mesh needs the height map; drop --no-height")
-    warnings.formatwarning = _warning_line
     previous = signal.signal(signal.SIGTERM, _terminate)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # the CLI prints every warning it meets
+        warnings.showwarning = _show_warning
+        return _run(args, previous)
+
+
+def _run(args, previous_sigterm) -> int:
     try:
         if args.command == "reconstruct":
             options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
@@ -327,7 +333,7 @@ def main(argv=None) -> int:
         print("colorps: interrupted; no partial results were written", file=sys.stderr)
         return 130
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous_sigterm)
     return 0
 
 

@@ -1,0 +1,317 @@
+"""The second round of bad inputs: nothing silent, nothing left behind, memory bounded.
+
+Each case runs the CLI (``main([...])`` or a subprocess) and checks the exit code,
+the one-line message naming the file, and the output folder's bytes before/after.
+"""
+
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from colorps import synth
+from colorps.cli import main
+from colorps.io import read_image, write_image
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("capture")
+    info = synth.write_synthetic(folder, size=48, images=4, theta=40, gauge_radius=30)
+    return folder, info
+
+
+def args_for(capture, out, scene=None, gauge=None, *extra):
+    folder, info = capture
+    g = info["gauge_sphere"]
+    return ["reconstruct", "--scene", scene or str(folder / "scene_*.exr"),
+            "--gauge", gauge or str(folder / "gauge_*.exr"),
+            "--sphere", f"{g['cx']},{g['cy']},{g['r']}", "--out", str(out), "--quiet", *extra]
+
+
+def snapshot(folder: Path) -> dict:
+    """Every file below ``folder`` with its bytes (hidden temporaries included)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file()}
+
+
+def one_line_error(capsys, *words):
+    err = capsys.readouterr().err.strip()
+    lines = [line for line in err.splitlines() if line.startswith("colorps: error:")]
+    assert len(lines) == 1, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+def copy_stack(capture, folder, rename=None, convert=None):
+    """Copy the capture's images into ``folder`` (optionally converted per file)."""
+    src, _ = capture
+    folder.mkdir(exist_ok=True)
+    for path in sorted(src.glob("*_0*.exr")):
+        image, names = read_image(path)
+        name = rename(path.name) if rename else path.name
+        if convert:
+            convert(folder / name, image, path.name)
+        else:
+            write_image(folder / name, image, channel_names=names, dtype="half")
+    return folder
+
+
+# ------------------------------------------------------------------ silent wrong data
+def test_mixed_pixel_types_in_a_stack_are_refused(capture, tmp_path, capsys):
+    mixed = copy_stack(capture, tmp_path / "mixed", convert=lambda p, im, n: write_image(
+        p.with_suffix(".tif") if n == "scene_02.exr" else p, im if n != "scene_02.exr"
+        else np.clip(im, 0, 1), dtype="uint16" if n == "scene_02.exr" else "half"))
+    out = tmp_path / "out"
+    code = main(args_for(capture, out, scene=f"{mixed}/scene_0*"))
+    assert code == 1
+    one_line_error(capsys, "scene_02.tif", "pixel type uint16", "scene_00.exr")
+    assert not out.exists()
+
+
+def test_saturated_16bit_gauge_with_exr_scene_is_not_silent(capture, tmp_path, capsys):
+    """The gauge's own clip level applies to the gauge: its saturated pixels are
+    clipped, and the run warns (or refuses) instead of matching garbage."""
+    gauges = copy_stack(capture, tmp_path / "tif", rename=lambda n: n.replace(".exr", ".tif"),
+                        convert=lambda p, im, n: write_image(p, np.clip(im * 4, 0, 1),
+                                                             dtype="uint16"))
+    out = tmp_path / "out"
+    code = main(args_for(capture, out, gauge=f"{gauges}/gauge_*.tif"))
+    err = capsys.readouterr().err
+    assert code == 1 or "warning" in err, err
+    if code == 0:
+        import json
+        report = json.loads((out / "report.json").read_text())
+        assert report["gauge_levels"]["clip_level"] is not None
+        assert report["statistics"]["warnings"]
+
+
+# ------------------------------------------------------------------ runs that solve nothing
+def test_mask_selecting_nothing_is_an_error(capture, tmp_path, capsys):
+    empty = tmp_path / "empty.png"
+    write_image(empty, np.zeros((48, 48)), dtype="uint8")
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, None, None, "--mask", str(empty))) == 1
+    one_line_error(capsys, "empty.png", "selects no pixel")
+    assert not out.exists()
+
+
+def test_all_black_scene_is_an_error(capture, tmp_path, capsys):
+    black = copy_stack(capture, tmp_path / "black",
+                       convert=lambda p, im, n: write_image(p, im * 0, dtype="half"))
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, scene=f"{black}/scene_*.exr")) == 1
+    one_line_error(capsys, "scene_00.exr", "no pixel", "too dark")
+    assert not out.exists()
+
+
+def test_small_solved_fraction_warns_in_summary_and_report(capture, tmp_path, capsys):
+    import json
+
+    half = copy_stack(capture, tmp_path / "half", convert=lambda p, im, n: write_image(
+        p, np.where(np.arange(48)[None, :, None] < 34, 0.0, im) if n.startswith("scene")
+        else im, dtype="half"))
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, scene=f"{half}/scene_*.exr")) == 0
+    assert "only" in capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert any("were solved" in w for w in report["statistics"]["warnings"])
+
+
+# ------------------------------------------------------------------ memory
+def hostile_exr(path: Path, claims: int) -> None:
+    """A small valid EXR whose header then claims ``claims`` x ``claims`` pixels."""
+    write_image(path, np.zeros((8, 8, 3)), dtype="half")
+    data = bytearray(path.read_bytes())
+    for name in (b"dataWindow\0box2i\0", b"displayWindow\0box2i\0"):
+        at = data.index(name) + len(name) + 4  # skip the attribute's size
+        data[at:at + 16] = struct.pack("<4i", 0, 0, claims - 1, claims - 1)
+    path.write_bytes(bytes(data))
+
+
+def test_hostile_header_refused_before_decoding(capture, tmp_path):
+    folder = copy_stack(capture, tmp_path / "hostile")
+    hostile_exr(folder / "scene_01.exr", 20000)
+    out = tmp_path / "out"
+    code = ("import resource, sys; from colorps.cli import main; "
+            f"rc = main({args_for(capture, out, scene=str(folder / 'scene_*.exr'))!r}); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "scene_01.exr: " in proc.stderr
+    assert "size 20000x20000" in proc.stderr or "header" in proc.stderr
+    peak_mb = int(proc.stdout.split()[-1]) / 1024
+    assert peak_mb < 1000, peak_mb  # the header claims 4.8 GB of float32 pixels
+    assert not out.exists()
+
+
+def test_stack_too_large_for_the_limit(capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, None, None, "--max-input-gib", "0.0001")) == 1
+    one_line_error(capsys, "scene_00.exr", "GiB", "--max-input-gib")
+
+
+def test_absurd_grid_size_is_refused(capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, None, None, "--grid-n", "1000000")) == 1
+    one_line_error(capsys, "far too fine", "at most N")
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ tracebacks
+@pytest.mark.parametrize("kind", ["noise", "tiny"])
+def test_auto_sphere_without_a_sphere(capture, tmp_path, capsys, kind):
+    rng = np.random.default_rng(0)
+    size = 1 if kind == "tiny" else 64
+    folder = tmp_path / kind
+    folder.mkdir()
+    for k in range(4):
+        write_image(folder / f"gauge_{k}.exr", rng.random((size, size, 3)), dtype="half")
+    args = args_for(capture, tmp_path / "out", gauge=str(folder / "gauge_*.exr"))
+    args[args.index("--sphere") + 1] = "auto"
+    if kind == "tiny":
+        args[args.index("--scene") + 1] = str(folder / "gauge_*.exr")
+    assert main(args) == 1
+    one_line_error(capsys, "sphere auto")
+
+
+def test_one_pixel_scene(capture, tmp_path):
+    folder = copy_stack(capture, tmp_path / "one", convert=lambda p, im, n: write_image(
+        p, im[24:25, 24:25] if n.startswith("scene") else im, dtype="half"))
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, scene=f"{folder}/scene_*.exr")) == 0
+    assert read_image(out / "relief.png")[0].shape[:2] == (1, 1)
+
+
+# ------------------------------------------------------------------ files left behind
+def test_disk_full_leaves_nothing_and_names_the_folder(capture, tmp_path, capsys,
+                                                       monkeypatch):
+    import errno
+
+    import colorps.outputs as outputs
+
+    real = outputs.write_image
+    calls = []
+
+    def full_disk(path, *a, **k):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(outputs, "write_image", full_disk)
+    out = tmp_path / "new" / "deeper" / "out"
+    assert main(args_for(capture, out)) == 1
+    line = one_line_error(capsys, str(out), "No space left on device")
+    assert ".colorps-" not in line
+    assert list(tmp_path.iterdir()) == []  # not the folder, not its parents
+
+
+def test_overwrite_swaps_the_whole_folder(capture, tmp_path):
+    out = tmp_path / "out"
+    assert main(args_for(capture, out)) == 0
+    first = snapshot(out)
+    assert main(args_for(capture, out, None, None, "--overwrite", "--mode", "mono")) == 0
+    second = snapshot(out)
+    assert set(first) == set(second) and first["report.json"] != second["report.json"]
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporaries beside it
+    (out / "notes.txt").write_text("mine")  # a user's file is kept
+    assert main(args_for(capture, out, None, None, "--overwrite")) == 0
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_failed_overwrite_leaves_old_results_byte_identical(capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(args_for(capture, out)) == 0
+    before = snapshot(tmp_path)
+    assert main(args_for(capture, out, str(tmp_path / "missing_*.exr"), None,
+                         "--overwrite")) == 1
+    one_line_error(capsys, "matches no file")
+    assert snapshot(tmp_path) == before
+
+
+def test_sigterm_leaves_no_temporaries(tmp_path):
+    data = tmp_path / "big"
+    synth.write_synthetic(data, size=700, images=8, gauge_radius=150)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "colorps.cli", "reconstruct", "--scene",
+           str(data / "scene_*.exr"), "--gauge", str(data / "gauge_*.exr"), "--sphere", "auto",
+           "--out", str(out), "--quiet", "--mesh", "both"]
+    codes = []
+    for delay in (2.0, 4.0):
+        proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+        codes.append(proc.returncode)
+        hidden = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+        assert hidden == []
+        if proc.returncode == 143:
+            assert "terminated" in err and not out.exists()
+        elif proc.returncode == 0:
+            import shutil
+            shutil.rmtree(out)
+        else:
+            assert proc.returncode == -signal.SIGTERM  # still importing
+    assert 143 in codes, codes
+
+
+# ------------------------------------------------------------------ details users notice
+def test_result_files_follow_the_umask(capture, tmp_path):
+    old = os.umask(0o022)
+    try:
+        out = tmp_path / "out"
+        assert main(args_for(capture, out)) == 0
+    finally:
+        os.umask(old)
+    assert (out.stat().st_mode & 0o777) == 0o755
+    for path in out.iterdir():
+        assert (path.stat().st_mode & 0o777) == 0o644, path
+
+
+def test_existing_file_with_glob_characters(capture, tmp_path):
+    folder = copy_stack(capture, tmp_path / "odd",
+                        rename=lambda n: n.replace("scene_", "shot [").replace(".exr", "].exr"))
+    scenes = sorted(str(p) for p in folder.glob("shot*"))
+    assert scenes and "[" in scenes[0]
+    out = tmp_path / "out"
+    folder_, info = capture
+    g = info["gauge_sphere"]
+    assert main(["reconstruct", "--scene", *scenes, "--gauge", str(folder_ / "gauge_*.exr"),
+                 "--sphere", f"{g['cx']},{g['cy']},{g['r']}", "--out", str(out),
+                 "--quiet"]) == 0
+
+
+def test_integrate_refuses_what_is_not_a_normal_map(capture, tmp_path, capsys):
+    folder, _ = capture
+    out = tmp_path / "z.exr"
+    assert main(["integrate", str(folder / "scene_00.exr"), "--out", str(out)]) == 1
+    one_line_error(capsys, "scene_00.exr", "not a normal map")
+    nan = tmp_path / "nan.exr"
+    write_image(nan, np.full((8, 8, 3), np.nan))
+    with _no_warnings():  # numpy's all-NaN warning must not leak out
+        assert main(["integrate", str(nan), "--out", str(out)]) == 1
+    one_line_error(capsys, "nan.exr", "no finite normal")
+    assert not out.exists()
+
+
+class _no_warnings:
+    """Fail when the block issues any warning."""
+
+    def __enter__(self):
+        import warnings
+        self._catch = warnings.catch_warnings(record=True)
+        self.caught = self._catch.__enter__()
+        warnings.simplefilter("always")
+
+    def __exit__(self, *exc):
+        self._catch.__exit__(*exc)
+        assert not self.caught, [str(w.message) for w in self.caught]
