@@ -205,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also refuse pixels whose plain signature distance per band "
                           "exceeds D (colorps 0.1's threshold) "
                           f"(default: {_shown(_DEFAULTS.max_distance)})")
+    rec.add_argument("--refine", choices=("quadratic", "none"), default=_DEFAULTS.refine,
+                     help="refine normals past the gauge's pixel grid (quadratic model of "
+                          "the gauge around each match), with uncertainty.exr")
     rec.add_argument("--max-input-gib", type=_positive_float, default=_DEFAULTS.max_input_gib,
                      metavar="G", help="refuse a stack that would take more than G GiB "
                                        "decoded (checked from the headers, before decoding)")

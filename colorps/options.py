@@ -88,6 +88,10 @@ class Options:
     max_distance : float or None
         Largest plain signature distance per band of a solved pixel (the
         unweighted distance of colorps 0.1). None: no such limit.
+    refine : {"quadratic", "none"}
+        Refine each solved normal past the gauge's pixel grid
+        (:mod:`colorps.refine`), with a per-pixel uncertainty; "none" keeps
+        the table's normal.
     encoding : {"auto", "linear", "srgb"}
         Files only: how stored values map to linear light ("auto": integer
         formats sRGB, floating-point formats linear).
@@ -121,6 +125,7 @@ class Options:
     max_dropped_lights: int = 2
     max_residual: float | None = 10.0
     max_distance: float | None = None
+    refine: Literal["quadratic", "none"] = "quadratic"
     encoding: Literal["auto", "linear", "srgb"] = "auto"
     height: bool = True
     mesh: Literal["ply", "obj", "both"] | None = None
@@ -159,6 +164,8 @@ class Options:
         if self.max_distance is not None and not _is_positive(self.max_distance):
             raise InputError(f"max_distance: expected a value > 0 or None, "
                              f"got {self.max_distance!r}")
+        if self.refine not in ("quadratic", "none"):
+            raise InputError(f"refine: expected 'quadratic' or 'none', got {self.refine!r}")
         if self.encoding not in _ENCODINGS:
             raise InputError(f"encoding: expected 'auto', 'linear' or 'srgb', "
                              f"got {self.encoding!r}")

@@ -14,6 +14,8 @@ invalid.png     why pixels are not solved, one colour per
                 :class:`~colorps.Reason`: black solved, grey background, blue
                 too dark, yellow clipped, magenta invalid value (NaN, Inf,
                 negative), red no good match, teal solved from a light subset
+uncertainty.exr float32 68 % angular radius of each refined normal (degrees);
+                NaN where not solved or not refined
 lights.png      lights dropped per pixel (cast shadows, highlights): black
                 none, then :data:`DROPPED_COLOURS` for 1, 2, 3+ lights
 lights.exr      float32 bit mask of the dropped lights (bit i: image i),
@@ -55,7 +57,7 @@ __all__ = ["OUTPUT_FILES", "HEIGHT_FILES", "MESH_FILES", "prepare_output_dir",
 
 #: Written by every reconstruction.
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
-                "invalid.png", "lights.png", "lights.exr", "report.json")
+                "invalid.png", "lights.png", "lights.exr", "uncertainty.exr", "report.json")
 #: Colours (8-bit sRGB) of lights.png for 1, 2 and 3 or more dropped lights.
 DROPPED_COLOURS = ((90, 200, 255), (255, 170, 0), (255, 40, 200))
 #: Written when the result has a height map.
@@ -277,6 +279,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report,
                                             dtype="uint8"),
         "lights.exr": lambda p: write_image(p, result.dropped_lights.astype(np.float32),
                                             channel_names=["L"]),
+        "uncertainty.exr": lambda p: write_image(p, result.uncertainty, channel_names=["U"]),
     }
     z = result.height
     if z is not None:

@@ -31,6 +31,7 @@ from .matching import DROP_LEVEL, Capture, GroupResult, weight_levels
 from .noise import NoiseModel, estimate_noise
 from .options import FLOAT_DARK_LEVEL, MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason, reason_counts
+from .refine import refine_normals
 from .residuals import band_variance, light_residuals
 from .signatures import SignatureSet, compute_signatures, measurement_flags
 
@@ -104,6 +105,7 @@ class Timings:
     signatures: float
     grid: float
     lookup: float
+    refine: float
     total: float
     integration: float | None = None
 
@@ -151,6 +153,10 @@ class ReconstructionStats:
         Fraction of the gauge mask with every band usable.
     warnings : tuple of str
         What the run warned about (also issued as Python warnings).
+    refined : int
+        Solved pixels whose normal was refined past the gauge's pixel grid.
+    uncertainty_median, uncertainty_p95 : float or None
+        Of the refined pixels' 68 % angular uncertainty (degrees).
     seconds : Timings
     """
 
@@ -181,6 +187,9 @@ class ReconstructionStats:
     max_distance: float | None
     gauge_usable_fraction: float
     warnings: tuple[str, ...]
+    refined: int
+    uncertainty_median: float | None
+    uncertainty_p95: float | None
     seconds: Timings
 
     def as_dict(self) -> dict:
@@ -206,6 +215,9 @@ class Reconstruction:
         model (:mod:`colorps.residuals`): about 1 where the gauge explains
         the pixel, far above for cast shadows, highlights or other materials.
         NaN where no match was attempted.
+    uncertainty : (H, W) ndarray of float32
+        68 % angular radius of the refined normal, degrees (:mod:`colorps.refine`);
+        NaN where not solved or not refined.
     solved : (H, W) ndarray of bool
     reason : (H, W) ndarray of uint8
         Why a pixel is not solved: a :class:`~colorps.Reason` code.
@@ -223,6 +235,7 @@ class Reconstruction:
     normals: np.ndarray
     albedo: np.ndarray
     quality: np.ndarray
+    uncertainty: np.ndarray
     solved: np.ndarray
     reason: np.ndarray
     bands_used: np.ndarray
@@ -349,10 +362,19 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         solved &= matches.distance <= options.max_distance
     normals = np.full((h, w, 3), np.nan, dtype=np.float32)
     normals[solved] = capture.gauge_normals[matches.row[solved]]
+    uncertainty = np.full((h, w), np.nan, dtype=np.float32)
+    offset = np.zeros((int(solved.sum()), 2), dtype=np.float32)
+    t0 = time.perf_counter()
+    if options.refine != "none" and solved.any():
+        refined = _refine(capture, gauge, gauge_sig, matches, solved, options)
+        normals[solved] = refined.normals
+        uncertainty[solved] = refined.uncertainty
+        offset = refined.offset
+    t_refine = time.perf_counter() - t0
     albedo = np.full((h, w, c), np.nan, dtype=np.float32)
     dropped_lights = _lights_of(matches.dropped[solved], m)  # (m, P)
     albedo[solved] = _albedo(scene[:, solved],
-                             gauge_stack.reshape(m, -1, c)[:, matches.row[solved]],
+                             _gauge_at(gauge_stack, matches.row[solved], offset),
                              gauge_albedo, options.clip_level, excluded=dropped_lights)
     reason = _reasons(scene_sig, mask, solved, matched, matches.dropped)
     n_masked = int(mask.sum())
@@ -388,11 +410,14 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         residual_p95=float(np.percentile(q, 95)) if q.size else None,
         max_residual=options.max_residual, max_distance=options.max_distance,
         gauge_usable_fraction=usable_gauge, warnings=tuple(said),
+        refined=int(np.isfinite(uncertainty).sum()),
+        uncertainty_median=_median(uncertainty[solved]),
+        uncertainty_p95=_percentile(uncertainty[solved], 95),
         seconds=Timings(signatures=t_signatures, grid=matches.seconds_grid,
-                        lookup=matches.seconds_lookup,
+                        lookup=matches.seconds_lookup, refine=t_refine,
                         total=time.perf_counter() - t_start),
     )
-    return Reconstruction(normals, albedo, matches.quality, solved, reason,
+    return Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
                           matches.bands_used, np.where(solved, matches.dropped, np.uint64(0)),
                           stats)
 
@@ -710,6 +735,57 @@ def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
     reason[unsolved & matched] = Reason.NO_GOOD_MATCH
     reason[~mask] = Reason.BACKGROUND
     return reason
+
+
+def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: _Matches,
+            solved: np.ndarray, options: Options):
+    """Refine the solved pixels' normals, weighting each measurement by its noise."""
+    m, n_bands = capture.images, capture.bands
+    ys, xs = np.nonzero(solved)
+    rows = matches.row[ys, xs]
+    scene_ov = capture.scene_ov[ys, xs]
+    gauge_ov = capture.gauge_ov.reshape(-1, n_bands, m)[rows]
+    gauge_model = capture.gauge_model or capture.model
+    scene_norm2 = (scene_ov.astype(np.float64) ** 2).sum(axis=-1)
+    gauge_norm2 = (gauge_ov.astype(np.float64) ** 2).sum(axis=-1)
+    ratio2 = scene_norm2 / np.maximum(gauge_norm2, 1e-30)
+    variance = capture.model.sigma(scene_ov).astype(np.float64) ** 2 + \
+        ratio2[..., None] * gauge_model.sigma(gauge_ov).astype(np.float64) ** 2
+    weights = 1.0 / np.maximum(variance, 1e-30)
+    bands = ((matches.bands_used[ys, xs][:, None] >> np.arange(n_bands)) & 1) == 1
+    lights = ~_lights_of(matches.dropped[ys, xs], m).T  # (P, m)
+    weights *= bands[:, :, None] & lights[:, None, :]
+    usable = gauge.mask & gauge_sig.valid
+    return refine_normals(capture.gauge_ov, gauge.normals, usable, scene_ov, weights, rows,
+                          model_scale=matches.model_scale, threads=options.threads)
+
+
+def _gauge_at(gauge_stack: np.ndarray, rows: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(m, P, c) gauge measurements at matched pixel + sub-pixel offset (bilinear)."""
+    m, hg, wg, c = gauge_stack.shape
+    qy, qx = np.divmod(rows, wg)
+    x = np.clip(qx + offset[:, 0], 0, wg - 1)
+    y = np.clip(qy + offset[:, 1], 0, hg - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), wg - 2 if wg > 1 else 0)
+    y0 = np.minimum(np.floor(y).astype(np.int64), hg - 2 if hg > 1 else 0)
+    fx = (x - x0)[None, :, None]
+    fy = (y - y0)[None, :, None]
+    x1 = np.minimum(x0 + 1, wg - 1)
+    y1 = np.minimum(y0 + 1, hg - 1)
+    g = gauge_stack
+    top = g[:, y0, x0] * (1 - fx) + g[:, y0, x1] * fx
+    bottom = g[:, y1, x0] * (1 - fx) + g[:, y1, x1] * fx
+    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+
+
+def _median(values: np.ndarray) -> float | None:
+    finite = values[np.isfinite(values)]
+    return float(np.median(finite)) if finite.size else None
+
+
+def _percentile(values: np.ndarray, q: float) -> float | None:
+    finite = values[np.isfinite(values)]
+    return float(np.percentile(finite, q)) if finite.size else None
 
 
 def _noise_model(gauge_stack: np.ndarray, gauge: Gauge, gauge_sig: SignatureSet,

@@ -1,0 +1,83 @@
+"""Continuous refinement past the gauge's pixel grid, and its uncertainty, against truth."""
+
+import numpy as np
+import pytest
+
+from colorps import Gauge, angular_error, reconstruct, synth
+
+
+def capture(radius, brdf="lambert", noise=0.0, size=160, lights=None):
+    lights = lights or synth.ring_lights(8, 45)
+    scene = synth.smiley_surface(size)
+    box = int(2 * radius + 10)
+    ball = synth.sphere_surface(box, radius)
+    centre = (box - 1) / 2
+    return (scene, synth.render(scene, lights, brdf=brdf, noise=noise, seed=1),
+            synth.render(ball, lights, brdf=brdf, noise=noise, seed=2),
+            Gauge.from_sphere((box, box), centre, centre, radius))
+
+
+@pytest.mark.parametrize("radius", [40, 100, 169])
+@pytest.mark.parametrize("brdf", ["lambert", "oren-nayar"])
+def test_noiseless_median_error_five_times_below_the_table(radius, brdf):
+    scene, stack, gauge_stack, gauge = capture(radius, brdf)
+    table = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, refine="none")
+    fine = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    ok = table.solved & fine.solved
+    e_table = np.median(angular_error(table.normals[ok], scene.normals[ok]))
+    e_fine = np.median(angular_error(fine.normals[ok], scene.normals[ok]))
+    assert e_fine * 5 <= e_table, (e_fine, e_table)
+    assert fine.stats.refined >= 0.85 * ok.sum()
+    np.testing.assert_allclose(np.linalg.norm(fine.normals[ok], axis=-1), 1, atol=1e-5)
+
+
+@pytest.mark.parametrize("noise", [0.002, 0.01])
+def test_noisy_never_worse_and_uncertainty_calibrated(noise):
+    scene, stack, gauge_stack, gauge = capture(100, noise=noise, size=200)
+    table = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, refine="none")
+    fine = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    ok = table.solved & fine.solved
+    err_fine = angular_error(fine.normals[ok], scene.normals[ok])
+    err_table = angular_error(table.normals[ok], scene.normals[ok])
+    assert np.median(err_fine) <= np.median(err_table)
+    assert err_fine.mean() <= err_table.mean()
+    has = ok & np.isfinite(fine.uncertainty)
+    inside = np.mean(angular_error(fine.normals[has], scene.normals[has])
+                     <= fine.uncertainty[has])
+    assert 0.5 < inside < 0.85, inside  # a 68 % radius
+
+
+def test_refined_albedo_stays_consistent():
+    scene, stack, gauge_stack, gauge = capture(60)
+    fine = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    table = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, refine="none")
+    ok = fine.solved
+    rel_fine = np.abs(fine.albedo[ok] / scene.albedo[ok] - 1)
+    rel_table = np.abs(table.albedo[ok] / scene.albedo[ok] - 1)
+    assert np.median(rel_fine) <= np.median(rel_table) and np.median(rel_fine) < 0.003
+
+
+def test_refinement_works_for_any_gauge_given_as_normals():
+    """An ellipsoidal gauge (not a sphere), given as normals + mask."""
+    h = w = 150
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    a, b = 60.0, 45.0  # semi-axes in x and y (pixels), depth 50
+    X, Y = (x - 74.5) / a, -(y - 74.5) / b
+    inside = X * X + Y * Y < 0.95
+    z = np.sqrt(np.clip(1 - X * X - Y * Y, 1e-9, None))
+    n = np.stack([X / a, Y / b, z / 50.0], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    normals = np.where(inside[..., None], n, 0.0)
+    surface = synth.SyntheticSurface(normals, inside, np.where(inside[..., None], 1.0, np.zeros(3)),
+                                     np.where(inside, z, np.nan))
+    lights = synth.ring_lights(8, 45)
+    gauge = Gauge(normals, inside & (X * X + Y * Y < 0.85))
+    scene = synth.smiley_surface(120)
+    stack = synth.render(scene, lights)
+    fine = reconstruct(stack, synth.render(surface, lights), gauge, mask=scene.mask)
+    table = reconstruct(stack, synth.render(surface, lights), gauge, mask=scene.mask,
+                        refine="none")
+    ok = fine.solved & table.solved & (scene.normals[..., 2] > 0.6)  # within the gauge
+    e_fine = np.median(angular_error(fine.normals[ok], scene.normals[ok]))
+    e_table = np.median(angular_error(table.normals[ok], scene.normals[ok]))
+    assert e_fine * 5 <= e_table, (e_fine, e_table)
