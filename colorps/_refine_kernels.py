@@ -36,8 +36,6 @@ DAMPING = 1e-9
 #: to the neighbouring gauge pixel, at most this many times (noisy pixels whose
 #: table match is off by more than a pixel).
 MAX_MOVES = 3
-#: Pixels handed to a thread at a time (scratch allocated once per chunk).
-PIXEL_CHUNK = 256
 FASTMATH = {"reassoc", "contract"}
 
 
@@ -50,45 +48,21 @@ def quadratic_fit_matrix(half: int) -> np.ndarray:
     return np.linalg.pinv(design).astype(np.float64)
 
 
-@njit(cache=True, inline="always")
-def _patch_usable(usable, y, x, half):
-    h, w = usable.shape
-    if y < half or x < half or y >= h - half or x >= w - half:
-        return False
-    for dy in range(-half, half + 1):
-        for dx in range(-half, half + 1):
-            if not usable[y + dy, x + dx]:
-                return False
-    return True
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _eval(coef, y, x, j, u, v):
+    """Value and (d/du, d/dv) at (u, v) of quadratic j of gauge pixel (y, x)."""
+    c0 = coef[y, x, j, 0]
+    c1 = coef[y, x, j, 1]
+    c2 = coef[y, x, j, 2]
+    c3 = coef[y, x, j, 3]
+    c4 = coef[y, x, j, 4]
+    c5 = coef[y, x, j, 5]
+    value = c0 + c1 * u + c2 * v + c3 * u * u + c4 * u * v + c5 * v * v
+    return value, c1 + 2.0 * c3 * u + c4 * v, c2 + c4 * u + 2.0 * c5 * v
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _fit(values, fit, y, x, coef, half):
-    """Quadratic coefficients of the last axis of the patch of values around (y, x)."""
-    n = coef.shape[0]
-    side = 2 * half + 1
-    for j in range(n):
-        for a in range(6):
-            coef[j, a] = 0.0
-    for dy in range(side):
-        for dx in range(side):
-            t = dy * side + dx
-            for j in range(n):
-                g = values[y + dy - half, x + dx - half, j]
-                for a in range(6):
-                    coef[j, a] += fit[a, t] * g
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _eval(coef, j, u, v):
-    """Value and (d/du, d/dv) of quadratic j at (u, v)."""
-    c = coef[j]
-    value = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v
-    return value, c[1] + 2.0 * c[3] * u + c[4] * v, c[2] + c[4] * u + 2.0 * c[5] * v
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _gauss_newton(coef, scene_ov, weights, p, n_bands, n_lights, u, v):
+def _gauss_newton(coef, y, x, scene_ov, weights, p, n_bands, n_lights, u, v):
     """STEPS Gauss-Newton steps from (u, v) inside the neighbourhood; returns the
     offset and the normal equations' matrix (h00, h01, h11) at it."""
     h00 = h01 = h11 = 0.0
@@ -104,7 +78,7 @@ def _gauss_newton(coef, scene_ov, weights, p, n_bands, n_lights, u, v):
             for i in range(n_lights):
                 wt = weights[p, k, i]
                 if wt > 0.0:
-                    g, _, _ = _eval(coef, k * n_lights + i, u, v)
+                    g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
                     sg += wt * scene_ov[p, k, i] * g
                     gg += wt * g * g
             if gg <= 0.0:
@@ -113,7 +87,7 @@ def _gauss_newton(coef, scene_ov, weights, p, n_bands, n_lights, u, v):
             for i in range(n_lights):
                 wt = weights[p, k, i]
                 if wt > 0.0:
-                    g, gu, gv = _eval(coef, k * n_lights + i, u, v)
+                    g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
                     r = scene_ov[p, k, i] - a * g
                     ju = a * gu
                     jv = a * gv
@@ -133,47 +107,51 @@ def _gauss_newton(coef, scene_ov, weights, p, n_bands, n_lights, u, v):
     return u, v, h00, h01, h11
 
 
-@njit(cache=True, fastmath=FASTMATH)
-def _refine_chunk(first, stop, gauge_ov, gauge_normals, usable, fit_wide, fit_narrow,
-                  scene_ov, weights, qy, qx, out_y, out_x, out_u, out_v, out_normal, out_cov,
-                  out_ok, coef, ncoef):
+@njit(cache=True, fastmath=FASTMATH, parallel=True)
+def refine(coef, ncoef, window, scene_ov, weights, qy, qx, out_y, out_x, out_u, out_v,
+           out_normal, out_cov, out_ok):
+    """Refine every pixel p (``prange``); see the module docstring.
+
+    coef (Hg, Wg, B * M, 6) and ncoef (Hg, Wg, 3, 6) hold the quadratic model
+    of every gauge measurement and normal component around every gauge pixel
+    (computed once per gauge, :func:`colorps.refine.quadratic_models`);
+    window (Hg, Wg) is 0 where a gauge pixel has no usable neighbourhood.
+    scene_ov (P, B, M) and weights (P, B, M) (1 / variance, 0: measurement not
+    used) per pixel; (qy, qx) its matched gauge pixel. Outputs: the gauge
+    pixel the fit ended at (out_y, out_x) and the offset (u, v) from it in
+    gauge pixels, the unit normal, the normal's angular variance (radians^2)
+    and whether it was refined.
+    """
     n_bands, n_lights = scene_ov.shape[1], scene_ov.shape[2]
-    for p in range(first, stop):
+    for p in prange(scene_ov.shape[0]):
         y, x = qy[p], qx[p]
         out_ok[p] = False
-        half = HALVES[0]
-        fit = fit_wide
-        if not _patch_usable(usable, y, x, half):
-            half = HALVES[1]
-            fit = fit_narrow
-            if not _patch_usable(usable, y, x, half):
-                continue
+        if window[y, x] == 0:
+            continue
         u = 0.0
         v = 0.0
         h00 = h01 = h11 = 0.0
         for move in range(MAX_MOVES + 1):
-            _fit(gauge_ov, fit, y, x, coef, half)
-            u, v, h00, h01, h11 = _gauss_newton(coef, scene_ov, weights, p, n_bands,
+            u, v, h00, h01, h11 = _gauss_newton(coef, y, x, scene_ov, weights, p, n_bands,
                                                 n_lights, u, v)
             step_x = 1 if u >= 1.0 else -1 if u <= -1.0 else 0
             step_y = 1 if v >= 1.0 else -1 if v <= -1.0 else 0
             if (step_x == 0 and step_y == 0) or move == MAX_MOVES or \
-                    not _patch_usable(usable, y + step_y, x + step_x, half):
+                    window[y + step_y, x + step_x] == 0:
                 break
             y += step_y
             x += step_x
             u -= step_x
             v -= step_y
-        _fit(gauge_normals, fit, y, x, ncoef, half)
         out_y[p] = y
         out_x[p] = x
         det = h00 * h11 - h01 * h01
         if not det > 0.0:
             continue
         # Normal at (u, v), and its derivatives for the angular covariance.
-        nx, nxu, nxv = _eval(ncoef, 0, u, v)
-        ny, nyu, nyv = _eval(ncoef, 1, u, v)
-        nz, nzu, nzv = _eval(ncoef, 2, u, v)
+        nx, nxu, nxv = _eval(ncoef, y, x, 0, u, v)
+        ny, nyu, nyv = _eval(ncoef, y, x, 1, u, v)
+        nz, nzu, nzv = _eval(ncoef, y, x, 2, u, v)
         norm = np.sqrt(nx * nx + ny * ny + nz * nz)
         if not norm > 0.0:
             continue
@@ -191,28 +169,3 @@ def _refine_chunk(first, stop, gauge_ov, gauge_normals, usable, fit_wide, fit_na
         tv = (nxv * nxv + nyv * nyv + nzv * nzv) / (norm * norm)
         out_cov[p] = c00 * tu + 2.0 * c01 * tuv + c11 * tv
         out_ok[p] = True
-
-
-@njit(cache=True, parallel=True, fastmath=FASTMATH)
-def refine(gauge_ov, gauge_normals, usable, fit_wide, fit_narrow, scene_ov, weights, qy, qx,
-           out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok):
-    """Refine every pixel p (``prange`` over chunks); see the module docstring.
-
-    gauge_ov (Hg, Wg, B * M) float32 and gauge_normals (Hg, Wg, 3) float32 are
-    images; usable (Hg, Wg) marks pixels whose measurements and normal can be
-    used; fit_wide and fit_narrow are :func:`quadratic_fit_matrix` of
-    HALVES[0] and HALVES[1]; scene_ov (P, B, M) and weights
-    (P, B, M) (1 / variance, 0: measurement not used) per pixel; (qy, qx) its
-    matched gauge pixel. Outputs: the gauge pixel the fit ended at (out_y,
-    out_x) and the offset (u, v) from it in gauge pixels, the unit normal, the
-    normal's angular variance (radians^2) and whether it was refined.
-    """
-    n = scene_ov.shape[0]
-    n_chunks = (n + PIXEL_CHUNK - 1) // PIXEL_CHUNK
-    for chunk in prange(n_chunks):
-        coef = np.empty((gauge_ov.shape[2], 6))
-        ncoef = np.empty((3, 6))
-        first = chunk * PIXEL_CHUNK
-        _refine_chunk(first, min(first + PIXEL_CHUNK, n), gauge_ov, gauge_normals, usable,
-                      fit_wide, fit_narrow, scene_ov, weights, qy, qx, out_y, out_x, out_u,
-                      out_v, out_normal, out_cov, out_ok, coef, ncoef)

@@ -746,12 +746,12 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: _M
     scene_ov = capture.scene_ov[ys, xs]
     gauge_ov = capture.gauge_ov.reshape(-1, n_bands, m)[rows]
     gauge_model = capture.gauge_model or capture.model
-    scene_norm2 = (scene_ov.astype(np.float64) ** 2).sum(axis=-1)
-    gauge_norm2 = (gauge_ov.astype(np.float64) ** 2).sum(axis=-1)
-    ratio2 = scene_norm2 / np.maximum(gauge_norm2, 1e-30)
-    variance = capture.model.sigma(scene_ov).astype(np.float64) ** 2 + \
-        ratio2[..., None] * gauge_model.sigma(gauge_ov).astype(np.float64) ** 2
-    weights = 1.0 / np.maximum(variance, 1e-30)
+    scene_norm2 = np.einsum("pbm,pbm->pb", scene_ov, scene_ov)
+    gauge_norm2 = np.einsum("pbm,pbm->pb", gauge_ov, gauge_ov)
+    ratio2 = scene_norm2 / np.maximum(gauge_norm2, np.float32(1e-30))
+    variance = capture.model.sigma(scene_ov) ** 2 + \
+        ratio2[..., None] * gauge_model.sigma(gauge_ov) ** 2
+    weights = 1.0 / np.maximum(variance, np.float32(1e-30))
     bands = ((matches.bands_used[ys, xs][:, None] >> np.arange(n_bands)) & 1) == 1
     lights = ~_lights_of(matches.dropped[ys, xs], m).T  # (P, m)
     weights *= bands[:, :, None] & lights[:, None, :]
@@ -763,19 +763,19 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: _M
 def _gauge_at(gauge_stack: np.ndarray, rows: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """(m, P, c) gauge measurements at matched pixel + sub-pixel offset (bilinear)."""
     m, hg, wg, c = gauge_stack.shape
+    pixels = np.ascontiguousarray(np.moveaxis(gauge_stack, 0, 2)).reshape(hg * wg, m, c)
     qy, qx = np.divmod(rows, wg)
     x = np.clip(qx + offset[:, 0], 0, wg - 1)
     y = np.clip(qy + offset[:, 1], 0, hg - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), wg - 2 if wg > 1 else 0)
-    y0 = np.minimum(np.floor(y).astype(np.int64), hg - 2 if hg > 1 else 0)
-    fx = (x - x0)[None, :, None]
-    fy = (y - y0)[None, :, None]
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(wg - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(hg - 2, 0))
     x1 = np.minimum(x0 + 1, wg - 1)
     y1 = np.minimum(y0 + 1, hg - 1)
-    g = gauge_stack
-    top = g[:, y0, x0] * (1 - fx) + g[:, y0, x1] * fx
-    bottom = g[:, y1, x0] * (1 - fx) + g[:, y1, x1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+    fx = (x - x0).astype(np.float32)[:, None, None]
+    fy = (y - y0).astype(np.float32)[:, None, None]
+    top = pixels[y0 * wg + x0] * (1 - fx) + pixels[y0 * wg + x1] * fx
+    bottom = pixels[y1 * wg + x0] * (1 - fx) + pixels[y1 * wg + x1] * fx
+    return np.moveaxis(top * (1 - fy) + bottom * fy, 0, 1).astype(np.float32)
 
 
 def _median(values: np.ndarray) -> float | None:

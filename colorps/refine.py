@@ -24,7 +24,8 @@ import numpy as np
 
 from . import _refine_kernels
 
-__all__ = ["refine_normals", "Refinement", "REFINE_METHODS", "RADIUS_68"]
+__all__ = ["refine_normals", "quadratic_models", "Refinement", "REFINE_METHODS",
+           "RADIUS_68"]
 
 #: Refinement methods of ``Options.refine``.
 REFINE_METHODS = ("quadratic", "none")
@@ -54,6 +55,50 @@ class Refinement:
     uncertainty: np.ndarray
     offset: np.ndarray
     refined: np.ndarray
+
+
+def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The local quadratic model of every gauge series around every gauge pixel.
+
+    Parameters
+    ----------
+    values : (Hg, Wg, S) ndarray
+        S gauge measurement series (bands x lights).
+    normals : (Hg, Wg, 3) ndarray
+    usable : (Hg, Wg) ndarray of bool
+
+    Returns
+    -------
+    coef : (Hg, Wg, S, 6) float32, ncoef : (Hg, Wg, 3, 6) float32
+        Coefficients of (1, u, v, u^2, uv, v^2), fitted by least squares over
+        the largest window of ``_refine_kernels.HALVES`` whose pixels are all
+        usable.
+    window : (Hg, Wg) int8
+        Half side of that window (0: none).
+    """
+    from scipy.ndimage import binary_erosion, correlate
+
+    hg, wg = usable.shape
+    window = np.zeros((hg, wg), dtype=np.int8)
+    coef = np.zeros((hg, wg, values.shape[2], 6), dtype=np.float32)
+    ncoef = np.zeros((hg, wg, 3, 6), dtype=np.float32)
+    data = np.where(usable[..., None], values, 0.0).astype(np.float32)
+    ndata = np.where(usable[..., None], normals, 0.0).astype(np.float32)
+    for half in sorted(_refine_kernels.HALVES):  # wider windows overwrite narrower
+        side = 2 * half + 1
+        inside = binary_erosion(usable, np.ones((side, side), bool), border_value=0)
+        if not inside.any():
+            continue
+        window[inside] = half
+        fit = _refine_kernels.quadratic_fit_matrix(half)
+        for a in range(6):
+            kernel = fit[a].reshape(side, side).astype(np.float32)
+            for target, source in ((coef, data), (ncoef, ndata)):
+                for j in range(source.shape[2]):
+                    plane = correlate(source[..., j], kernel, mode="constant")
+                    target[inside, j, a] = plane[inside]
+    return coef, ncoef, window
 
 
 def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.ndarray,
@@ -89,6 +134,8 @@ def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.n
     hg, wg, b, m = gauge_ov.shape
     n = len(rows)
     qy, qx = np.divmod(np.asarray(rows, dtype=np.int64), wg)
+    coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
+                                           usable)
     out_y = qy.copy()
     out_x = qx.copy()
     out_u = np.zeros(n)
@@ -99,15 +146,10 @@ def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.n
     previous = numba.get_num_threads()
     numba.set_num_threads(resolve_threads(threads))
     try:
-        _refine_kernels.refine(
-            np.ascontiguousarray(gauge_ov.reshape(hg, wg, b * m), dtype=np.float32),
-            np.ascontiguousarray(gauge_normals, dtype=np.float32),
-            np.ascontiguousarray(usable, dtype=np.bool_),
-            _refine_kernels.quadratic_fit_matrix(_refine_kernels.HALVES[0]),
-            _refine_kernels.quadratic_fit_matrix(_refine_kernels.HALVES[1]),
-            np.ascontiguousarray(scene_ov, dtype=np.float32),
-            np.ascontiguousarray(weights, dtype=np.float32), qy, qx, out_y, out_x, out_u, out_v,
-            out_normal, out_cov, out_ok)
+        _refine_kernels.refine(coef, ncoef, window,
+                               np.ascontiguousarray(scene_ov, dtype=np.float32),
+                               np.ascontiguousarray(weights, dtype=np.float32), qy, qx, out_y,
+                               out_x, out_u, out_v, out_normal, out_cov, out_ok)
     finally:
         numba.set_num_threads(previous)
     table = gauge_normals.reshape(-1, 3)[rows]
