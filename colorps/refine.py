@@ -27,6 +27,8 @@ from . import _refine_kernels
 __all__ = ["refine_normals", "quadratic_models", "Refinement", "REFINE_METHODS",
            "RADIUS_68"]
 
+#: Gauge pixels whose models are fitted at a time (bounds the patch memory).
+MODEL_CHUNK = 4096
 #: Refinement methods of ``Options.refine``.
 REFINE_METHODS = ("quadratic", "none")
 #: For an isotropic 2-D Gaussian with sigma per axis, 68 % of the mass lies
@@ -57,9 +59,10 @@ class Refinement:
     refined: np.ndarray
 
 
-def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
+def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray,
+                     needed: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The local quadratic model of every gauge series around every gauge pixel.
+    """The local quadratic model of every gauge series around gauge pixels.
 
     Parameters
     ----------
@@ -67,38 +70,41 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
         S gauge measurement series (bands x lights).
     normals : (Hg, Wg, 3) ndarray
     usable : (Hg, Wg) ndarray of bool
+    needed : (Hg, Wg) ndarray of bool, optional
+        Pixels whose models are wanted (default: all).
 
     Returns
     -------
     coef : (Hg, Wg, S, 6) float32, ncoef : (Hg, Wg, 3, 6) float32
         Coefficients of (1, u, v, u^2, uv, v^2), fitted by least squares over
         the largest window of ``_refine_kernels.HALVES`` whose pixels are all
-        usable.
+        usable (0 elsewhere).
     window : (Hg, Wg) int8
-        Half side of that window (0: none).
+        Half side of that window (0: none, or not needed).
     """
-    from scipy.ndimage import binary_erosion, correlate
+    from scipy.ndimage import binary_erosion
 
     hg, wg = usable.shape
+    series = np.concatenate([values, normals], axis=-1).astype(np.float32)
     window = np.zeros((hg, wg), dtype=np.int8)
-    coef = np.zeros((hg, wg, values.shape[2], 6), dtype=np.float32)
-    ncoef = np.zeros((hg, wg, 3, 6), dtype=np.float32)
-    data = np.where(usable[..., None], values, 0.0).astype(np.float32)
-    ndata = np.where(usable[..., None], normals, 0.0).astype(np.float32)
     for half in sorted(_refine_kernels.HALVES):  # wider windows overwrite narrower
         side = 2 * half + 1
-        inside = binary_erosion(usable, np.ones((side, side), bool), border_value=0)
-        if not inside.any():
-            continue
-        window[inside] = half
-        fit = _refine_kernels.quadratic_fit_matrix(half)
-        for a in range(6):
-            kernel = fit[a].reshape(side, side).astype(np.float32)
-            for target, source in ((coef, data), (ncoef, ndata)):
-                for j in range(source.shape[2]):
-                    plane = correlate(source[..., j], kernel, mode="constant")
-                    target[inside, j, a] = plane[inside]
-    return coef, ncoef, window
+        window[binary_erosion(usable, np.ones((side, side), bool), border_value=0)] = half
+    if needed is not None:
+        window[~needed] = 0
+    coef = np.zeros((hg, wg, series.shape[2], 6), dtype=np.float32)
+    for half in _refine_kernels.HALVES:
+        ys, xs = np.nonzero(window == half)
+        fit = _refine_kernels.quadratic_fit_matrix(half).astype(np.float32)  # (6, side^2)
+        dy, dx = np.mgrid[-half:half + 1, -half:half + 1]
+        for a in range(0, len(ys), MODEL_CHUNK):
+            py = ys[a:a + MODEL_CHUNK, None] + dy.ravel()[None, :]
+            px = xs[a:a + MODEL_CHUNK, None] + dx.ravel()[None, :]
+            patches = series[py, px]  # (K, side^2, S)
+            coef[ys[a:a + MODEL_CHUNK], xs[a:a + MODEL_CHUNK]] = \
+                np.einsum("at,kts->ksa", fit, patches)
+    return (np.ascontiguousarray(coef[..., :values.shape[2], :]),
+            np.ascontiguousarray(coef[..., values.shape[2]:, :]), window)
 
 
 def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.ndarray,
@@ -134,8 +140,14 @@ def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.n
     hg, wg, b, m = gauge_ov.shape
     n = len(rows)
     qy, qx = np.divmod(np.asarray(rows, dtype=np.int64), wg)
+    from scipy.ndimage import binary_dilation
+
+    matched = np.zeros((hg, wg), dtype=bool)
+    matched[qy, qx] = True
+    reach = 2 * _refine_kernels.MAX_MOVES + 1  # the fit may move this far
+    needed = binary_dilation(matched, np.ones((reach, reach), bool))
     coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
-                                           usable)
+                                           usable, needed)
     out_y = qy.copy()
     out_x = qx.copy()
     out_u = np.zeros(n)
