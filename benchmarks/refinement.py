@@ -60,17 +60,12 @@ def main() -> int:
     s = after.stats.seconds
     print(f"\n1 MP ({int(scene.mask.sum())} pixels, colour m = 8, r = 100): lookup "
           f"{s.lookup:.2f} s, refinement {s.refine:.2f} s, whole reconstruct {s.total:.2f} s")
+    from colorps.options import Options
     from colorps.sample import run_demo
     with tempfile.TemporaryDirectory() as tmp:
         for refine in ("none", "quadratic"):
-            import colorps.sample as sample
-            from colorps.options import Options
-            original = sample.Options
-            sample.Options = lambda mode: Options(mode=mode, refine=refine)  # noqa: E731
-            try:
-                _, report = run_demo(Path(tmp) / refine, progress=False)
-            finally:
-                sample.Options = original
+            _, report = run_demo(Path(tmp) / refine, progress=False,
+                                 options=Options(refine=refine))
             print(f"sample, refine={refine}: normal error median "
                   f"{report.normal_error_deg[1]:.3f} deg, height RMS "
                   f"{report.height_rms_px:.4f} px")

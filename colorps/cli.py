@@ -55,14 +55,26 @@ def _albedo(text: str):
     return values[0] if len(values) == 1 else values
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a value > 0, got {text!r}")
-    return value
+def _number(kind, smallest, what: str):
+    """An argument type: a finite ``kind`` (float or int) of at least ``smallest``."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not np.isfinite(value) or value < smallest:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    return parse
+
+
+_positive_float = _number(float, np.nextafter(0.0, 1.0), "a value > 0")
+_non_negative_float = _number(float, 0.0, "a value >= 0")
+_positive_int = _number(int, 1, "a positive integer")
+_non_negative_int = _number(int, 0, "an integer >= 0")
+_channel = _number(int, 0, "'luminance' or a channel index")
 
 
 def _or_words(convert, **words):
@@ -78,47 +90,6 @@ def _or_words(convert, **words):
                 f"{exc}; or one of {', '.join(map(repr, words))}") from None
 
     return parse
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not (np.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a value >= 0, got {text!r}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return n
-
-
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return n
-
-
-def _channel(text: str) -> int:
-    try:
-        k = int(text)
-    except ValueError:
-        k = -1
-    if k < 0:
-        raise argparse.ArgumentTypeError(f"expected 'luminance' or a channel index, "
-                                         f"got {text!r}")
-    return k
 
 
 def _shown(value) -> str:

@@ -9,7 +9,6 @@ write the outputs (:mod:`colorps.outputs`). Option values arrive converted
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Literal, Sequence
 
 import numpy as np

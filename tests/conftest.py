@@ -1,3 +1,5 @@
+import sys
+
 import numpy as np
 import pytest
 
@@ -17,3 +19,13 @@ def sphere_table(m, theta, colour, radius=40, seed=1):
 @pytest.fixture(scope="session")
 def rng():
     return np.random.default_rng(12345)
+
+
+def long_run_command(folder):
+    """A CLI run of several seconds (700 px scene, r = 150 gauge) and its output folder."""
+    data = folder / "big"
+    synth.write_synthetic(data, size=700, images=8, gauge_radius=150)
+    out = folder / "out"
+    return [sys.executable, "-m", "colorps.cli", "reconstruct", "--scene",
+            str(data / "scene_*.exr"), "--gauge", str(data / "gauge_*.exr"), "--sphere", "auto",
+            "--out", str(out), "--quiet", "--mesh", "both"], out

@@ -17,6 +17,7 @@ import pytest
 
 from colorps import synth
 from colorps.cli import main
+from tests.conftest import long_run_command
 from colorps.io import read_image, write_image
 
 
@@ -239,12 +240,7 @@ def test_failed_overwrite_leaves_old_results_byte_identical(capture, tmp_path, c
 
 
 def test_sigterm_leaves_no_temporaries(tmp_path):
-    data = tmp_path / "big"
-    synth.write_synthetic(data, size=700, images=8, gauge_radius=150)
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "colorps.cli", "reconstruct", "--scene",
-           str(data / "scene_*.exr"), "--gauge", str(data / "gauge_*.exr"), "--sphere", "auto",
-           "--out", str(out), "--quiet", "--mesh", "both"]
+    cmd, out = long_run_command(tmp_path)
     codes = []
     for delay in (2.0, 4.0):
         proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from colorps import Gauge, GaugeError, Reason, angular_error, find_sphere, reconstruct, synth
+from colorps import Gauge, GaugeError, angular_error, find_sphere, reconstruct, synth
 from colorps.matching import Capture, weight_levels
 from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
 from colorps.signatures import compute_signatures

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from colorps import Gauge, ImageReadError, Reason, angular_error, reconstruct, synth
 from colorps.cli import main
+from tests.conftest import long_run_command
 from colorps.io import LossyInputWarning, read_image, write_image
 
 GAUGE_R = 120.0
@@ -257,12 +258,7 @@ def test_fuzz_cli_with_corrupt_stack(sample, tmp_path, capsys):
 
 # -------------------------------------------------------------------- Ctrl-C
 def test_interrupted_run_leaves_no_partial_output(tmp_path):
-    data = tmp_path / "big"
-    synth.write_synthetic(data, size=700, images=8, gauge_radius=150)
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "colorps.cli", "reconstruct", "--scene",
-           str(data / "scene_*.exr"), "--gauge", str(data / "gauge_*.exr"), "--sphere", "auto",
-           "--out", str(out), "--quiet", "--mesh", "both"]
+    cmd, out = long_run_command(tmp_path)
     results = []
     for delay in (1.5, 3.0, 4.5):
         proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)

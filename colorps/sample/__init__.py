@@ -67,7 +67,7 @@ class DemoReport:
 
 
 def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
-             progress: bool = True):
+             progress: bool = True, options: Options | None = None):
     """Reconstruct a sample capture and measure it against its ground truth.
 
     Parameters
@@ -78,6 +78,8 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
         A folder made by ``colorps synth`` (default: the bundled sample).
     mode : {"colour", "mono"}
     overwrite, progress : bool
+    options : Options, optional
+        Settings (default ``Options(mode=mode)``).
 
     Returns
     -------
@@ -99,7 +101,7 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
                                (g["cx"], g["cy"], g["r"]), out,
                                gauge_albedo=info["gauge_albedo"],
                                mask_path=mask if mask.exists() else None,
-                               options=Options(mode=mode), overwrite=overwrite,
+                               options=options or Options(mode=mode), overwrite=overwrite,
                                progress=progress)
     truth_n, _ = read_image(folder / "truth_normal.exr")
     truth_a, _ = read_image(folder / "truth_albedo.exr")
