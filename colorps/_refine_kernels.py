@@ -36,6 +36,8 @@ DAMPING = 1e-9
 #: to the neighbouring gauge pixel, at most this many times (noisy pixels whose
 #: table match is off by more than a pixel).
 MAX_MOVES = 3
+#: Pixels handed to a thread at a time (scratch allocated once per chunk).
+PIXEL_CHUNK = 256
 FASTMATH = {"reassoc", "contract"}
 
 
@@ -62,7 +64,7 @@ def _eval(coef, y, x, j, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _gauss_newton(coef, y, x, scene_ov, weights, p, n_bands, n_lights, u, v):
+def _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights, u, v):
     """STEPS Gauss-Newton steps from (u, v) inside the neighbourhood; returns the
     offset and the normal equations' matrix (h00, h01, h11) at it."""
     h00 = h01 = h11 = 0.0
@@ -76,19 +78,19 @@ def _gauss_newton(coef, y, x, scene_ov, weights, p, n_bands, n_lights, u, v):
             sg = 0.0
             gg = 0.0
             for i in range(n_lights):
-                wt = weights[p, k, i]
+                wt = weights[k, i]
                 if wt > 0.0:
                     g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
-                    sg += wt * scene_ov[p, k, i] * g
+                    sg += wt * obs[k, i] * g
                     gg += wt * g * g
             if gg <= 0.0:
                 continue
             a = sg / gg
             for i in range(n_lights):
-                wt = weights[p, k, i]
+                wt = weights[k, i]
                 if wt > 0.0:
                     g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
-                    r = scene_ov[p, k, i] - a * g
+                    r = obs[k, i] - a * g
                     ju = a * gu
                     jv = a * gv
                     h00 += wt * ju * ju
@@ -107,65 +109,129 @@ def _gauss_newton(coef, y, x, scene_ov, weights, p, n_bands, n_lights, u, v):
     return u, v, h00, h01, h11
 
 
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _variance(v, noise, row, table):
+    """Expected variance of a measurement v (see :class:`colorps.noise.NoiseModel`).
+
+    noise[row] = (read^2, gain, kind): kind 0 float, 1 half float, 2 integer
+    codes with the quantisation sigma tabulated over 0..1 in table[row].
+    """
+    v = max(v, 0.0)
+    variance = noise[row, 0] + noise[row, 1] * v
+    kind = noise[row, 2]
+    if kind == 1.0:
+        ulp = 2.0 ** (np.floor(np.log2(max(v, 2.0 ** -14))) - 10.0)
+        variance += ulp * ulp / 12.0
+    elif kind == 2.0:
+        n = table.shape[1]
+        t = min(v, 1.0) * (n - 1)
+        j = min(int(t), n - 2)
+        q = table[row, j] + (t - j) * (table[row, j + 1] - table[row, j])
+        variance += q * q
+    return variance
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, table, obs, weights):
+    """Fill obs (B, M) with the pixel's measurements and weights (B, M) with
+    1 / (sigma_S^2 + (|S_k| / |G_k|)^2 sigma_G^2) for the bands and lights its
+    match used (0 for the others)."""
+    n_bands, n_lights = obs.shape
+    for k in range(n_bands):
+        used = (bands >> k) & 1
+        s2 = 0.0
+        g2 = 0.0
+        for i in range(n_lights):
+            obs[k, i] = scene_ov[py, px, k, i]
+            if used and not (dropped >> np.uint64(i)) & np.uint64(1):
+                s2 += obs[k, i] * obs[k, i]
+                g = gauge_ov[y, x, k, i]
+                g2 += g * g
+        ratio2 = s2 / g2 if g2 > 0.0 else 0.0
+        for i in range(n_lights):
+            weights[k, i] = 0.0
+            if used and g2 > 0.0 and not (dropped >> np.uint64(i)) & np.uint64(1):
+                variance = _variance(obs[k, i], noise, 0, table) + \
+                    ratio2 * _variance(gauge_ov[y, x, k, i], noise, 1, table)
+                weights[k, i] = 1.0 / max(variance, 1e-30)
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, out_u, out_v,
+                  out_normal, out_cov, out_ok):
+    n_bands, n_lights = obs.shape
+    y, x = qy[p], qx[p]
+    out_ok[p] = False
+    if window[y, x] == 0:
+        return
+    u = 0.0
+    v = 0.0
+    h00 = h01 = h11 = 0.0
+    for move in range(MAX_MOVES + 1):
+        u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights,
+                                            u, v)
+        step_x = 1 if u >= 1.0 else -1 if u <= -1.0 else 0
+        step_y = 1 if v >= 1.0 else -1 if v <= -1.0 else 0
+        if (step_x == 0 and step_y == 0) or move == MAX_MOVES or \
+                window[y + step_y, x + step_x] == 0:
+            break
+        y += step_y
+        x += step_x
+        u -= step_x
+        v -= step_y
+    out_y[p] = y
+    out_x[p] = x
+    det = h00 * h11 - h01 * h01
+    if not det > 0.0:
+        return
+    # Normal at (u, v), and its derivatives for the angular covariance.
+    nx, nxu, nxv = _eval(ncoef, y, x, 0, u, v)
+    ny, nyu, nyv = _eval(ncoef, y, x, 1, u, v)
+    nz, nzu, nzv = _eval(ncoef, y, x, 2, u, v)
+    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if not norm > 0.0:
+        return
+    out_u[p] = u
+    out_v[p] = v
+    out_normal[p, 0] = nx / norm
+    out_normal[p, 1] = ny / norm
+    out_normal[p, 2] = nz / norm
+    # cov(u, v) = (J^T W J)^-1; the normal's angular variance = trace(Jn C Jn^T).
+    c00 = h11 / det
+    c01 = -h01 / det
+    c11 = h00 / det
+    tu = (nxu * nxu + nyu * nyu + nzu * nzu) / (norm * norm)
+    tuv = (nxu * nxv + nyu * nyv + nzu * nzv) / (norm * norm)
+    tv = (nxv * nxv + nyv * nyv + nzv * nzv) / (norm * norm)
+    out_cov[p] = c00 * tu + 2.0 * c01 * tuv + c11 * tv
+    out_ok[p] = True
+
+
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def refine(coef, ncoef, window, scene_ov, weights, qy, qx, out_y, out_x, out_u, out_v,
-           out_normal, out_cov, out_ok):
-    """Refine every pixel p (``prange``); see the module docstring.
+def refine(coef, ncoef, window, scene_ov, gauge_ov, py, px, qy, qx, bands, dropped, noise,
+           table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok):
+    """Refine every pixel p (``prange`` over chunks); see the module docstring.
 
     coef (Hg, Wg, B * M, 6) and ncoef (Hg, Wg, 3, 6) hold the quadratic model
-    of every gauge measurement and normal component around every gauge pixel
-    (computed once per gauge, :func:`colorps.refine.quadratic_models`);
-    window (Hg, Wg) is 0 where a gauge pixel has no usable neighbourhood.
-    scene_ov (P, B, M) and weights (P, B, M) (1 / variance, 0: measurement not
-    used) per pixel; (qy, qx) its matched gauge pixel. Outputs: the gauge
-    pixel the fit ended at (out_y, out_x) and the offset (u, v) from it in
-    gauge pixels, the unit normal, the normal's angular variance (radians^2)
-    and whether it was refined.
+    of every gauge measurement and normal component around gauge pixels
+    (:func:`colorps.refine.quadratic_models`); window (Hg, Wg) is 0 where a
+    gauge pixel has no usable neighbourhood. scene_ov (H, W, B, M) and
+    gauge_ov (Hg, Wg, B, M) are the observation vectors; pixel p is (py, px),
+    matched to gauge pixel (qy, qx), with bands (bit k: band used) and dropped
+    (bit i: light dropped). noise (2, 3) and table (2, Q) describe the scene's
+    (row 0) and gauge's (row 1) noise (:func:`_variance`). Outputs: the gauge
+    pixel the fit ended at (out_y, out_x) and the offset (u, v) from it, the
+    unit normal, the normal's angular variance (radians^2), and whether it was
+    refined.
     """
-    n_bands, n_lights = scene_ov.shape[1], scene_ov.shape[2]
-    for p in prange(scene_ov.shape[0]):
-        y, x = qy[p], qx[p]
-        out_ok[p] = False
-        if window[y, x] == 0:
-            continue
-        u = 0.0
-        v = 0.0
-        h00 = h01 = h11 = 0.0
-        for move in range(MAX_MOVES + 1):
-            u, v, h00, h01, h11 = _gauss_newton(coef, y, x, scene_ov, weights, p, n_bands,
-                                                n_lights, u, v)
-            step_x = 1 if u >= 1.0 else -1 if u <= -1.0 else 0
-            step_y = 1 if v >= 1.0 else -1 if v <= -1.0 else 0
-            if (step_x == 0 and step_y == 0) or move == MAX_MOVES or \
-                    window[y + step_y, x + step_x] == 0:
-                break
-            y += step_y
-            x += step_x
-            u -= step_x
-            v -= step_y
-        out_y[p] = y
-        out_x[p] = x
-        det = h00 * h11 - h01 * h01
-        if not det > 0.0:
-            continue
-        # Normal at (u, v), and its derivatives for the angular covariance.
-        nx, nxu, nxv = _eval(ncoef, y, x, 0, u, v)
-        ny, nyu, nyv = _eval(ncoef, y, x, 1, u, v)
-        nz, nzu, nzv = _eval(ncoef, y, x, 2, u, v)
-        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if not norm > 0.0:
-            continue
-        out_u[p] = u
-        out_v[p] = v
-        out_normal[p, 0] = nx / norm
-        out_normal[p, 1] = ny / norm
-        out_normal[p, 2] = nz / norm
-        # cov(u, v) = (J^T W J)^-1; the normal's angular variance = trace(Jn C Jn^T).
-        c00 = h11 / det
-        c01 = -h01 / det
-        c11 = h00 / det
-        tu = (nxu * nxu + nyu * nyu + nzu * nzu) / (norm * norm)
-        tuv = (nxu * nxv + nyu * nyv + nzu * nzv) / (norm * norm)
-        tv = (nxv * nxv + nyv * nyv + nzv * nzv) / (norm * norm)
-        out_cov[p] = c00 * tu + 2.0 * c01 * tuv + c11 * tv
-        out_ok[p] = True
+    n = py.shape[0]
+    n_bands, n_lights = scene_ov.shape[2], scene_ov.shape[3]
+    n_chunks = (n + PIXEL_CHUNK - 1) // PIXEL_CHUNK
+    for chunk in prange(n_chunks):
+        obs = np.empty((n_bands, n_lights))
+        weights = np.empty((n_bands, n_lights))
+        for p in range(chunk * PIXEL_CHUNK, min((chunk + 1) * PIXEL_CHUNK, n)):
+            _weights(scene_ov, gauge_ov, py[p], px[p], qy[p], qx[p], bands[p], dropped[p],
+                     noise, table, obs, weights)
+            _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, out_u,
+                          out_v, out_normal, out_cov, out_ok)

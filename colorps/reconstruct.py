@@ -740,23 +740,11 @@ def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
 def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: _Matches,
             solved: np.ndarray, options: Options):
     """Refine the solved pixels' normals, weighting each measurement by its noise."""
-    m, n_bands = capture.images, capture.bands
     ys, xs = np.nonzero(solved)
-    rows = matches.row[ys, xs]
-    scene_ov = capture.scene_ov[ys, xs]
-    gauge_ov = capture.gauge_ov.reshape(-1, n_bands, m)[rows]
-    gauge_model = capture.gauge_model or capture.model
-    scene_norm2 = np.einsum("pbm,pbm->pb", scene_ov, scene_ov)
-    gauge_norm2 = np.einsum("pbm,pbm->pb", gauge_ov, gauge_ov)
-    ratio2 = scene_norm2 / np.maximum(gauge_norm2, np.float32(1e-30))
-    variance = capture.model.sigma(scene_ov) ** 2 + \
-        ratio2[..., None] * gauge_model.sigma(gauge_ov) ** 2
-    weights = 1.0 / np.maximum(variance, np.float32(1e-30))
-    bands = ((matches.bands_used[ys, xs][:, None] >> np.arange(n_bands)) & 1) == 1
-    lights = ~_lights_of(matches.dropped[ys, xs], m).T  # (P, m)
-    weights *= bands[:, :, None] & lights[:, None, :]
-    usable = gauge.mask & gauge_sig.valid
-    return refine_normals(capture.gauge_ov, gauge.normals, usable, scene_ov, weights, rows,
+    return refine_normals(capture.scene_ov, capture.gauge_ov, gauge.normals,
+                          gauge.mask & gauge_sig.valid, ys, xs, matches.row[ys, xs],
+                          matches.bands_used[ys, xs], matches.dropped[ys, xs], capture.model,
+                          capture.gauge_model or capture.model,
                           model_scale=matches.model_scale, threads=options.threads)
 
 

@@ -23,9 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _refine_kernels
+from .noise import NoiseModel
 
-__all__ = ["refine_normals", "quadratic_models", "Refinement", "REFINE_METHODS",
-           "RADIUS_68"]
+__all__ = ["refine_normals", "quadratic_models", "noise_arrays", "Refinement",
+           "REFINE_METHODS", "RADIUS_68"]
 
 #: Gauge pixels whose models are fitted at a time (bounds the patch memory).
 MODEL_CHUNK = 4096
@@ -107,24 +108,49 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
             np.ascontiguousarray(coef[..., values.shape[2]:, :]), window)
 
 
-def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.ndarray,
-                   scene_ov: np.ndarray, weights: np.ndarray, rows: np.ndarray, *,
-                   model_scale: float = 1.0, threads: int | None = None) -> Refinement:
+def noise_arrays(scene: NoiseModel, gauge: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's description of two noise models: (2, 3) (read^2, gain, kind) and
+    (2, Q) quantisation sigma over 0..1 (integer files)."""
+    from .noise import QUANTISATION_SAMPLES, quantisation_sigma
+
+    kinds = {"float": 0.0, "half": 1.0, "int": 2.0}
+    levels = np.linspace(0.0, 1.0, QUANTISATION_SAMPLES)
+    noise = np.zeros((2, 3))
+    table = np.zeros((2, QUANTISATION_SAMPLES))
+    for row, model in enumerate((scene, gauge)):
+        noise[row] = (model.read ** 2, model.gain, kinds[model.pixel_type])
+        if model.pixel_type == "int":
+            table[row] = quantisation_sigma(levels, pixel_type="int", top_code=model.top_code,
+                                            encoding=model.encoding)
+    return noise, table
+
+
+def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np.ndarray,
+                   usable: np.ndarray, ys: np.ndarray, xs: np.ndarray, rows: np.ndarray,
+                   bands: np.ndarray, dropped: np.ndarray, scene_noise: NoiseModel,
+                   gauge_noise: NoiseModel, *, model_scale: float = 1.0,
+                   threads: int | None = None) -> Refinement:
     """Refine matched normals continuously (see the module docstring).
 
     Parameters
     ----------
+    scene_ov : (H, W, B, M) ndarray
+        Scene observation vectors per band.
     gauge_ov : (Hg, Wg, B, M) ndarray
         Gauge observation vectors per band.
     gauge_normals : (Hg, Wg, 3) ndarray
     usable : (Hg, Wg) ndarray of bool
         Gauge pixels whose measurements and normal may be used.
-    scene_ov : (P, B, M) ndarray
-        The pixels' observation vectors.
-    weights : (P, B, M) ndarray
-        1 / variance of each measurement (0: not used, e.g. a dropped light).
+    ys, xs : (P,) ndarray of int
+        The pixels to refine.
     rows : (P,) ndarray of int
         Flat index of each pixel's matched gauge pixel.
+    bands : (P,) ndarray of uint8
+        Bit k set: band k was matched.
+    dropped : (P,) ndarray of uint64
+        Bit i set: light i was left out of the match.
+    scene_noise, gauge_noise : NoiseModel
+        Weights are 1 / (sigma_S^2 + (|S_k| / |G_k|)^2 sigma_G^2).
     model_scale : float, optional
         The capture's model scale (uncertainties grow with it).
     threads : int, optional
@@ -134,20 +160,20 @@ def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.n
     Refinement
     """
     import numba
+    from scipy.ndimage import binary_dilation
 
     from ._checks import resolve_threads
 
     hg, wg, b, m = gauge_ov.shape
     n = len(rows)
     qy, qx = np.divmod(np.asarray(rows, dtype=np.int64), wg)
-    from scipy.ndimage import binary_dilation
-
     matched = np.zeros((hg, wg), dtype=bool)
     matched[qy, qx] = True
     reach = 2 * _refine_kernels.MAX_MOVES + 1  # the fit may move this far
     needed = binary_dilation(matched, np.ones((reach, reach), bool))
     coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
                                            usable, needed)
+    noise, table = noise_arrays(scene_noise, gauge_noise)
     out_y = qy.copy()
     out_x = qx.copy()
     out_u = np.zeros(n)
@@ -158,14 +184,16 @@ def refine_normals(gauge_ov: np.ndarray, gauge_normals: np.ndarray, usable: np.n
     previous = numba.get_num_threads()
     numba.set_num_threads(resolve_threads(threads))
     try:
-        _refine_kernels.refine(coef, ncoef, window,
-                               np.ascontiguousarray(scene_ov, dtype=np.float32),
-                               np.ascontiguousarray(weights, dtype=np.float32), qy, qx, out_y,
-                               out_x, out_u, out_v, out_normal, out_cov, out_ok)
+        _refine_kernels.refine(
+            coef, ncoef, window, np.ascontiguousarray(scene_ov, dtype=np.float32),
+            np.ascontiguousarray(gauge_ov, dtype=np.float32),
+            np.asarray(ys, dtype=np.int64), np.asarray(xs, dtype=np.int64), qy, qx,
+            np.asarray(bands, dtype=np.uint8), np.asarray(dropped, dtype=np.uint64), noise,
+            table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok)
     finally:
         numba.set_num_threads(previous)
-    table = gauge_normals.reshape(-1, 3)[rows]
-    normals = np.where(out_ok[:, None], out_normal, table).astype(np.float32)
+    table_normals = gauge_normals.reshape(-1, 3)[rows]
+    normals = np.where(out_ok[:, None], out_normal, table_normals).astype(np.float32)
     sigma = np.sqrt(np.maximum(out_cov / 2.0, 0.0)) * model_scale
     uncertainty = np.where(out_ok, np.degrees(RADIUS_68 * sigma), np.nan).astype(np.float32)
     # Offsets relative to the matched pixel (the fit may have moved).
