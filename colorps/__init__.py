@@ -12,6 +12,7 @@ from .gauge import Gauge, find_sphere
 from .geometry import angular_error, sphere_normals
 from .grid import BucketGrid, QueryStats
 from .integrate import integrate, weights_from_quality
+from .lights import Lights, read_lights, write_lights
 from .options import Options
 from .reasons import Reason
 from .reconstruct import Reconstruction, ReconstructionStats, reconstruct
@@ -24,7 +25,7 @@ except PackageNotFoundError:  # running from a source tree
 
 __all__ = [
     "reconstruct", "Options", "Reconstruction", "ReconstructionStats", "Reason",
-    "Gauge", "find_sphere", "BucketGrid", "QueryStats",
+    "Gauge", "find_sphere", "Lights", "read_lights", "write_lights", "BucketGrid", "QueryStats",
     "SignatureSet", "compute_signatures", "luminance",
     "integrate", "weights_from_quality", "angular_error", "sphere_normals", "synth",
     "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",

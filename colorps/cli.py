@@ -109,10 +109,17 @@ def build_parser() -> argparse.ArgumentParser:
                          help="photos in; normal map, albedo and quality out")
     rec.add_argument("--scene", nargs="+", required=True, metavar="PATTERN",
                      help="scene images: quoted globs, paths or @list.txt (natural order)")
-    rec.add_argument("--gauge", nargs="+", required=True, metavar="PATTERN",
+    rec.add_argument("--gauge", nargs="+", metavar="PATTERN",
                      help="gauge images under the same lights, same order")
-    rec.add_argument("--sphere", type=_sphere, required=True, metavar="auto|CX,CY,R",
+    rec.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="gauge sphere in gauge-image pixels, or 'auto' to find it")
+    rec.add_argument("--lights", metavar="FILE",
+                     help="instead of --gauge/--sphere: calibrated light directions "
+                          "(.txt 'x y z' per image, .lp or .json); the gauge is rendered")
+    rec.add_argument("--light-intensities", metavar="FILE",
+                     help="with --lights: one 'r g b' (or one value) per image")
+    rec.add_argument("--virtual-radius", type=_positive_float, default=100.0, metavar="R",
+                     help="with --lights: radius (px) of the rendered gauge sphere")
     rec.add_argument("--gauge-albedo", type=_albedo, default=DEFAULT_ALBEDO, metavar="A|R,G,B",
                      help="albedo of the gauge, one value or one per band")
     rec.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -254,6 +261,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.command == "reconstruct" and args.mesh and not args.height:
         parser.error("--mesh needs the height map; drop --no-height")
+    if args.command == "reconstruct":
+        if args.lights is None and (args.gauge is None or args.sphere is None):
+            parser.error("give --gauge and --sphere, or --lights")
+        if args.lights is not None and (args.gauge is not None or args.sphere is not None):
+            parser.error("--lights replaces --gauge and --sphere; give one or the other")
+        if args.light_intensities is not None and args.lights is None:
+            parser.error("--light-intensities needs --lights")
     previous = signal.signal(signal.SIGTERM, _terminate)
     with warnings.catch_warnings():
         warnings.simplefilter("always")  # the CLI prints every warning it meets
@@ -267,8 +281,9 @@ def _run(args, previous_sigterm) -> int:
             options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
             result = reconstruct_files(
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
-                mask_path=args.mask, options=options, overwrite=args.overwrite,
-                progress=not args.quiet)
+                mask_path=args.mask, options=options, lights=args.lights,
+                light_intensities=args.light_intensities, virtual_radius=args.virtual_radius,
+                overwrite=args.overwrite, progress=not args.quiet)
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s.solved} of {s.pixels} pixels "

@@ -77,12 +77,15 @@ class Gauge:
         Intrinsic albedo G* of the gauge (one value, or one per band).
     sphere : (cx, cy, r) or None
         Sphere geometry when the gauge is a sphere.
+    stack : (m, H, W, c) ndarray or None
+        The gauge's images when colorps rendered them (:meth:`virtual`).
     """
 
     normals: np.ndarray
     mask: np.ndarray
     albedo: object = DEFAULT_ALBEDO
     sphere: tuple[float, float, float] | None = None
+    stack: np.ndarray | None = None
 
     def __post_init__(self):
         normals = np.asarray(self.normals, dtype=np.float32)
@@ -136,6 +139,48 @@ class Gauge:
         mask = rho <= 1.0 - margin / radius
         normals[~mask] = 0.0
         return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)))
+
+
+    @classmethod
+    def virtual(cls, lights, *, radius: float = 100.0, bands: int | None = None,
+                brdf: str = "lambert") -> "Gauge":
+        """A sphere gauge rendered under calibrated lights (no gauge photographs).
+
+        Parameters
+        ----------
+        lights : Lights
+            Directions and intensities, one per image (:mod:`colorps.lights`).
+        radius : float, optional
+            Sphere radius in pixels of the rendered table (100 px: about 30,000
+            entries; the refinement goes past its pixel grid).
+        bands : int, optional
+            Bands of the scene images (default: the intensities').
+        brdf : {"lambert", "oren-nayar"}, optional
+            The finish assumed for scene and gauge alike.
+
+        Returns
+        -------
+        Gauge
+            Of albedo 1 (albedo maps come out absolute), with ``stack`` the
+            rendered (m, H, W, c) images.
+
+        Examples
+        --------
+        >>> from colorps import Gauge, Lights
+        >>> gauge = Gauge.virtual(Lights([[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8]]),
+        ...                       radius=20, bands=3)
+        >>> gauge.stack.shape, gauge.sphere
+        ((3, 50, 50, 3), (24.5, 24.5, 20.0))
+        """
+        from .synth import render, sphere_surface
+
+        bands = bands or lights.intensities.shape[1]
+        size = int(np.ceil(2 * radius + 10))
+        centre = (size - 1) / 2.0
+        ball = sphere_surface(size, radius, bands=bands)
+        stack = render(ball, lights.as_lighting(bands), brdf=brdf)
+        gauge = cls.from_sphere((size, size), centre, centre, radius, albedo=DEFAULT_ALBEDO)
+        return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack)
 
 
 def find_sphere(stack) -> tuple[float, float, float]:

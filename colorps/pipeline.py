@@ -27,9 +27,11 @@ UNIT_TOLERANCE = 0.01
 MAX_NON_UNIT_FRACTION = 0.01
 
 
-def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str | Sequence[str],
-                      sphere: Literal["auto"] | tuple[float, float, float], out, *,
+def reconstruct_files(scene_patterns: str | Sequence[str],
+                      gauge_patterns: str | Sequence[str] | None,
+                      sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
                       gauge_albedo=DEFAULT_ALBEDO, mask_path=None, options: Options | None = None,
+                      lights=None, light_intensities=None, virtual_radius: float = 100.0,
                       overwrite: bool = False, progress: bool = True) -> Reconstruction:
     """Read scene and gauge stacks, reconstruct, and write the output folder.
 
@@ -40,6 +42,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
         paired in natural order.
     sphere : "auto" or (cx, cy, r)
         Gauge sphere in gauge-image pixels, or found with :func:`colorps.find_sphere`.
+        Both gauge arguments are None when ``lights`` is given.
     out : str or Path
         Output folder (see :mod:`colorps.outputs` for the files).
     gauge_albedo : float or sequence of float, optional
@@ -51,6 +54,10 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
         scene file's pixel type (see :func:`colorps.io.input_levels`).
     overwrite : bool, optional
         Replace existing results.
+    lights, light_intensities : str or Path, optional
+        A light file (:func:`colorps.read_lights`) instead of gauge images: the
+        gauge is rendered (:meth:`colorps.Gauge.virtual`, a Lambertian sphere
+        of ``virtual_radius`` pixels).
     progress : bool, optional
         Progress bars on reading and matching.
 
@@ -60,6 +67,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
         With its height map when ``options.height``.
     """
     from .gauge import Gauge, find_sphere
+    from .lights import read_lights
+    from .noise import NoiseModel, estimate_noise
     from .integrate import integrate, weights_from_quality
     from .io import (check_stack_files, expand_paths, input_levels, noise_base, read_mask,
                      read_stack)
@@ -68,35 +77,58 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
 
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
+    if (lights is None) == (gauge_patterns is None):
+        raise InputError("give either gauge images (and their sphere) or a light file")
     scene_paths = expand_paths(scene_patterns, name="scene")
-    gauge_paths = expand_paths(gauge_patterns, name="gauge")
-    if len(scene_paths) != len(gauge_paths):
-        raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
-                         f"{len(gauge_paths)}; they are paired in order")
     # Every header first: sizes, channels, pixel types and memory, before any pixel.
     limit = options.max_input_gib * 2 ** 30
     scene_info = check_stack_files(scene_paths, name="scene", max_bytes=limit)[0]
-    gauge_info = check_stack_files(gauge_paths, name="gauge", max_bytes=limit)[0]
-    if gauge_info.channels != scene_info.channels:
-        raise InputError(f"{gauge_paths[0]}: has {gauge_info.channels} channel(s) but "
-                         f"{scene_paths[0]} has {scene_info.channels}")
+    if lights is not None:
+        light_set = read_lights(lights, light_intensities, images=len(scene_paths))
+        gauge_paths = []
+    else:
+        gauge_paths = expand_paths(gauge_patterns, name="gauge")
+        if len(scene_paths) != len(gauge_paths):
+            raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
+                             f"{len(gauge_paths)}; they are paired in order")
+        gauge_info = check_stack_files(gauge_paths, name="gauge", max_bytes=limit)[0]
+        if gauge_info.channels != scene_info.channels:
+            raise InputError(f"{gauge_paths[0]}: has {gauge_info.channels} channel(s) but "
+                             f"{scene_paths[0]} has {scene_info.channels}")
     mask = None
     if mask_path is not None:
         mask = read_mask(mask_path, (scene_info.height, scene_info.width))
         if not mask.any():
             raise InputError(f"{mask_path}: the mask selects no pixel (non-zero = solve)")
     scene, names = read_stack(scene_paths, options.encoding, name="scene", progress=progress)
-    gauge_stack, _ = read_stack(gauge_paths, options.encoding, name="gauge",
-                                progress=progress)
-    # Levels and quantisation belong to each stack's files (checked alike above).
-    gauge_levels = options.with_levels(*input_levels(gauge_paths[0], options.encoding))
+    scene_noise = noise_base(scene_paths[0], options.encoding)
+    requested = options  # "auto" levels resolve per stack, from its own files
     options = options.with_levels(*input_levels(scene_paths[0], options.encoding))
-    found = find_sphere(gauge_stack) if sphere == "auto" else tuple(sphere)
-    gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
+    if lights is not None:
+        gauge = Gauge.virtual(light_set, radius=virtual_radius, bands=scene.shape[3])
+        gauge_stack, found = gauge.stack, gauge.sphere
+        gauge_noise = NoiseModel(read=0.0, gain=0.0)  # rendered: only float rounding
+        gauge_levels = options.replace(clip_level=None)
+        if "auto" in (options.read_noise, options.gain):
+            # A rendered gauge has no scatter to measure: measure the scene's.
+            usable = np.isfinite(scene).all(axis=(0, 3)) & (scene > 0).all(axis=(0, 3))
+            if mask is not None:
+                usable &= mask
+            fitted = estimate_noise(scene, usable, scene_noise)
+            options = options.replace(
+                read_noise=fitted.read if options.read_noise == "auto" else options.read_noise,
+                gain=fitted.gain if options.gain == "auto" else options.gain)
+    else:
+        gauge_stack, _ = read_stack(gauge_paths, options.encoding, name="gauge",
+                                    progress=progress)
+        # Levels and quantisation belong to each stack's files (checked alike above).
+        gauge_levels = requested.with_levels(*input_levels(gauge_paths[0], options.encoding))
+        gauge_noise = noise_base(gauge_paths[0], options.encoding)
+        found = find_sphere(gauge_stack) if sphere == "auto" else tuple(sphere)
+        gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
 
-    result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
-                         noise=noise_base(scene_paths[0], options.encoding),
-                         gauge_noise=noise_base(gauge_paths[0], options.encoding),
+    result = reconstruct(scene, gauge_stack, gauge, options, mask=mask, noise=scene_noise,
+                         gauge_noise=gauge_noise,
                          gauge_levels=(gauge_levels.clip_level, gauge_levels.dark_level),
                          progress=progress)
     _check_solved(result, scene_paths, gauge_paths, mask_path)
@@ -109,7 +141,10 @@ def reconstruct_files(scene_patterns: str | Sequence[str], gauge_patterns: str |
     report = dict(
         colorps_version=__version__, scene=[str(p) for p in scene_paths],
         gauge=[str(p) for p in gauge_paths], sphere=dict(zip(("cx", "cy", "r"), found)),
-        sphere_found_automatically=sphere == "auto", gauge_albedo=gauge_albedo,
+        sphere_found_automatically=sphere == "auto",
+        lights=None if lights is None else str(lights),
+        light_intensities=None if light_intensities is None else str(light_intensities),
+        virtual_gauge=lights is not None, gauge_albedo=gauge_albedo,
         mask=None if mask_path is None else str(mask_path), channels=names,
         options=options.as_dict(),
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
@@ -127,7 +162,7 @@ def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -
         return
     reasons = {k: v for k, v in stats.pixels_by_reason.items() if v and k != "background"}
     where = f"mask {mask_path}" if mask_path else "the scene"
-    if stats.table_size == 0:
+    if stats.table_size == 0 and gauge_paths:
         raise InputError(f"{gauge_paths[0]}: no gauge pixel has every band usable "
                          "(clipped, too dark or invalid), so nothing can be matched; check "
                          "the gauge images and --sphere")

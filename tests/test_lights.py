@@ -1,0 +1,98 @@
+"""Calibrated lights: the three file formats, bad light files, and the virtual gauge."""
+
+import json
+
+import numpy as np
+import pytest
+
+from colorps import Gauge, InputError, Lights, angular_error, read_lights, reconstruct, synth
+from colorps import write_lights
+from colorps.cli import main
+
+
+@pytest.fixture
+def lights():
+    ring = synth.ring_lights(6, 40, np.random.default_rng(0).uniform(0.5, 1.0, (6, 3)))
+    return Lights(ring.directions[:, 0], ring.colours[:, 0])
+
+
+@pytest.mark.parametrize("suffix", [".txt", ".lp", ".json"])
+def test_round_trips(lights, tmp_path, suffix):
+    path = write_lights(lights, tmp_path / f"lights{suffix}")
+    intensities = None
+    if suffix != ".json":  # DiLiGenT keeps intensities in their own file
+        intensities = tmp_path / "light_intensities.txt"
+        intensities.write_text("".join(" ".join(f"{v:.9g}" for v in row) + "\n"
+                                       for row in lights.intensities))
+    back = read_lights(path, intensities, images=6)
+    np.testing.assert_allclose(back.directions, lights.directions, atol=1e-8)
+    np.testing.assert_allclose(back.intensities, lights.intensities, atol=1e-8)
+    if suffix == ".lp":
+        assert back.names == tuple(f"image_{k:03d}" for k in range(6))
+
+
+@pytest.mark.parametrize("content, message", [
+    ("0 0 1\n0 0 1\n", "lists 2 lights but there are 3 images"),
+    ("0 0 1\nnan 0 1\n0 0 1\n", "light 2 is not a finite direction"),
+    ("0 0 1\n0 0 0\n0 0 1\n", "light 2 has length 0"),
+    ("0 0 1\n0 0.6 -0.8\n0 0 1\n", "light 2 points below the horizon"),
+    ("0 0 1\n0 0 2\n0 0 1\n", "not a unit direction"),
+    ("0 0 1\n0 0\n0 0 1\n", "line 2 has 2 values"),
+    ("0 0 1\nx y z\n0 0 1\n", "line 2 is not 3 numbers"),
+])
+def test_bad_light_files_name_the_file_and_the_light(tmp_path, content, message):
+    path = tmp_path / "bad.txt"
+    path.write_text(content)
+    with pytest.raises(InputError, match=message) as info:
+        read_lights(path, images=3)
+    assert str(path) in str(info.value)
+
+
+def test_bad_lp_and_json(tmp_path):
+    lp = tmp_path / "bad.lp"
+    lp.write_text("3\na.png 0 0 1\nb.png 0 0 1\n")
+    with pytest.raises(InputError, match="says 3 lights but lists 2"):
+        read_lights(lp)
+    doc = tmp_path / "bad.json"
+    doc.write_text(json.dumps({"directions": [[0, 0, 1]], "intensities": [[1, 1], [1, 1]]}))
+    with pytest.raises(InputError, match="intensities"):
+        read_lights(doc)
+    with pytest.raises(InputError, match="light files are"):
+        read_lights(tmp_path / "lights.csv")
+
+
+def test_virtual_gauge_gives_the_normals_of_a_rendered_one(lights):
+    gauge = Gauge.virtual(lights, radius=80, bands=3)
+    ball = synth.sphere_surface(gauge.mask.shape, 80)
+    physical = synth.render(ball, lights.as_lighting(3))
+    scene = synth.smiley_surface(100)
+    stack = synth.render(scene, lights.as_lighting(3), noise=0.002)
+    virtual = reconstruct(stack, gauge.stack, gauge, mask=scene.mask)
+    rendered = reconstruct(stack, physical, gauge, mask=scene.mask)
+    np.testing.assert_array_equal(virtual.normals, rendered.normals)
+    err = angular_error(virtual.normals[virtual.solved], scene.normals[virtual.solved])
+    assert virtual.solved[scene.mask].all() and np.median(err) < 0.3
+
+
+def test_cli_with_a_light_file(tmp_path, capsys):
+    data = tmp_path / "capture"
+    info = synth.write_synthetic(data, size=64, images=6, theta=40, noise=0.002)
+    lights = Lights(np.array(info["light_directions"])[:, 0],
+                    np.array(info["light_colours"])[:, 0])
+    write_lights(lights, data / "lights.txt")
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
+                 str(data / "lights.txt"), "--mask", str(data / "mask.png"), "--out",
+                 str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["virtual_gauge"] and report["statistics"]["solved"] > 0
+    assert abs(report["statistics"]["noise"]["read"] - 0.002) < 0.001  # from the scene
+    with pytest.raises(SystemExit) as stop:
+        main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
+              str(data / "lights.txt"), "--sphere", "auto", "--out", str(tmp_path / "o2")])
+    assert stop.value.code == 2 and "replaces --gauge" in capsys.readouterr().err
+    (data / "short.txt").write_text("0 0 1\n0.6 0 0.8\n0 0.6 0.8\n")
+    assert main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
+                 str(data / "short.txt"), "--out", str(tmp_path / "o3")]) == 1
+    assert "lists 3 lights but there are 6 images" in capsys.readouterr().err
+    assert not (tmp_path / "o3").exists()
