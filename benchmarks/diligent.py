@@ -1,0 +1,75 @@
+"""colorps on a DiLiGenT object: mean / median angular error against its ground truth.
+
+Run ``python benchmarks/diligent.py FOLDER [--mode colour|mono]`` with a DiLiGenT
+object folder (``pmsData/ballPNG`` and the like: 96 16-bit linear PNGs,
+``light_directions.txt``, ``light_intensities.txt``, ``mask.png``,
+``Normal_gt.mat``). The data set is not ours to ship: get it from its authors
+(or the public copy in the t-taniai/neuralps repository). colorps runs
+``reconstruct`` with a virtual gauge rendered under the calibrated lights
+(``--lights``), default options otherwise, and the images read as linear.
+
+DiLiGenT's light and normal coordinates are x right, y up, z towards the
+camera, like colorps's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from colorps import Options, angular_error  # noqa: E402
+from colorps.pipeline import reconstruct_files  # noqa: E402
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--mode", choices=("colour", "mono"), default="colour")
+    parser.add_argument("--refine", choices=("quadratic", "none"), default="quadratic")
+    parser.add_argument("--no-light-subsets", dest="light_subsets", action="store_false")
+    parser.add_argument("--keep-all", action="store_true",
+                        help="refuse nothing (max_residual None)")
+    args = parser.parse_args(argv)
+    from scipy.io import loadmat
+
+    folder = args.folder
+    names = (folder / "filenames.txt").read_text().split()
+    truth = loadmat(folder / "Normal_gt.mat")["Normal_gt"].astype(np.float64)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        result = reconstruct_files(
+            [str(folder / n) for n in names], None, None, Path(tmp) / "out",
+            mask_path=folder / "mask.png", lights=folder / "light_directions.txt",
+            light_intensities=folder / "light_intensities.txt",
+            options=Options(mode=args.mode, refine=args.refine, encoding="linear",
+                            height=False, light_subsets=args.light_subsets,
+                            max_residual=None if args.keep_all else Options().max_residual),
+            progress=False)
+        seconds = time.perf_counter() - t0
+    from colorps.io import read_mask
+
+    mask = read_mask(folder / "mask.png", truth.shape[:2])
+    solved = result.solved & mask
+    err = np.where(solved, angular_error(result.normals, truth), 90.0)[mask]
+    s = result.stats
+    print(f"{folder.name}: {args.mode} mode, refine {args.refine}, light subsets "
+          f"{args.light_subsets}, keep all {args.keep_all}, {s.images} images")
+    print(f"  solved {solved.sum()} of {mask.sum()} mask pixels ({solved.sum() / mask.sum():.2%})")
+    print(f"  angular error (refused = 90 deg): mean {err.mean():.2f}, median "
+          f"{np.median(err):.2f}, 95th percentile {np.percentile(err, 95):.2f} deg")
+    solved_err = angular_error(result.normals[solved], truth[solved])
+    print(f"  over solved pixels: mean {solved_err.mean():.2f}, median "
+          f"{np.median(solved_err):.2f} deg; model scale {s.model_scale:.2f}, "
+          f"{s.solved_from_light_subset} from a light subset; {seconds:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
