@@ -109,6 +109,10 @@ class Capture:
     scene_ov : (H, W, B, m) ndarray of float32
         Scene OVs of the signature bands (0 where a band is unusable).
     scene_valid : (H, W, B) ndarray of bool
+    scene_clipped : (H, W) ndarray of uint64
+        Lights with a clipped measurement at a scene pixel.
+    scene_invalid : (H, W) ndarray of bool
+        Scene pixels with an invalid (NaN, Inf, negative) measurement.
     gauge_ov : (Hg, Wg, B, m) ndarray of float32
     gauge_valid : (Hg, Wg, B) ndarray of bool
         Usable bands of gauge pixels inside the gauge mask.
@@ -129,6 +133,8 @@ class Capture:
     model: NoiseModel
     min_norm: float
     gauge_model: NoiseModel | None = None
+    scene_clipped: np.ndarray | None = None
+    scene_invalid: np.ndarray | None = None
     _light_sets: dict = field(default_factory=dict)
     _gauge_variance: np.ndarray | None = None
 

@@ -54,6 +54,9 @@ MIN_TABLE_ENTRIES = 3
 #: Least squares albedo (some measurements unusable) needs the usable ones to
 #: carry at least this fraction of the gauge OV's energy; else NaN.
 MIN_ALBEDO_ENERGY = 0.01
+#: A pixel with clipped measurements in at most this fraction of the images
+#: keeps its bands and drops those images' lights instead.
+MAX_CLIPPED_FRACTION = 0.5
 #: Light subsets: pixels whose residual (noise units) exceeds SUBSET_TRIGGER are
 #: re-matched without each of their lights in turn; the best is kept when its
 #: residual is at most SUBSET_GAIN of the old one. At least MIN_LIGHTS lights
@@ -347,10 +350,11 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     model = dataclasses.replace(noise or gauge_model, read=gauge_model.read,
                                 gain=gauge_model.gain, estimated=gauge_model.estimated)
     capture = Capture(
-        scene_ov=_ov(scene_sig), scene_valid=scene_sig.band_valid,
+        scene_ov=scene_sig.ov, scene_valid=scene_sig.band_valid,
         gauge_ov=_ov(gauge_sig), gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
         gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
-        gauge_model=gauge_model)
+        gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
+        scene_invalid=scene_sig.band_invalid_value.any(axis=-1))
     t_signatures = time.perf_counter() - t0
 
     matches = _match(capture, mask, options, progress)
@@ -501,25 +505,35 @@ def _match(capture: Capture, mask: np.ndarray, options: Options,
         fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
         valid = np.where(fixes_normal[:, None], kept, valid)
         levels = np.where(valid, np.maximum(levels, DROP_LEVEL + 1), 0).astype(np.int8)
+    dropped = np.zeros(len(ys), dtype=np.uint64)
+    if options.light_subsets:
+        dropped, valid, levels = _drop_clipped_lights(capture, ys, xs, valid, levels,
+                                                      options)
     code = (valid * (1 << np.arange(n_bands))).sum(axis=-1)
     state = _MatchState.empty(h, w, n_bands)
     state.levels[ys, xs] = levels
-    keys, inverse = np.unique(np.column_stack([code, levels]), axis=0, return_inverse=True)
+    keys, inverse = np.unique(np.column_stack([dropped, code, levels]), axis=0,
+                              return_inverse=True)
     inverse = inverse.ravel()
     order = np.argsort(-np.bincount(inverse), kind="stable")
     with tqdm(total=len(ys), desc="matching", unit="px", unit_scale=True,
               disable=not progress, leave=False) as bar:
         for g in order:
-            bands = tuple(k for k in range(n_bands) if keys[g, 0] >> k & 1)
+            lights_dropped = tuple(i for i in range(m) if int(keys[g, 0]) >> i & 1)
+            bands = tuple(k for k in range(n_bands) if int(keys[g, 1]) >> k & 1)
             pick = inverse == g
             bar.update(int(pick.sum()))
-            if len(bands) * (m - 1) < 2:
+            if len(bands) * (m - len(lights_dropped) - 1) < 2:
                 continue  # these bands cannot fix a normal: reported by _reasons
             gy, gx = ys[pick], xs[pick]
-            result = capture.match(gy, gx, bands, tuple(int(v) for v in keys[g, 1:][list(bands)]),
-                                   tuple(range(m)), grid_n=options.grid_n,
-                                   threads=options.threads, sample_size=AUTO_N_SAMPLE)
-            state.record(gy, gx, result, bands, keys[g, 0], ())
+            kept = tuple(i for i in range(m) if i not in lights_dropped)
+            result = capture.match(gy, gx, bands,
+                                   tuple(int(v) for v in keys[g, 2:][list(bands)]), kept,
+                                   grid_n=options.grid_n, threads=options.threads,
+                                   sample_size=AUTO_N_SAMPLE)
+            state.record(gy, gx, result, bands, keys[g, 1], lights_dropped)
+            state.dropped[gy, gx] = keys[g, 0]
+            state.brighter[gy, gx] = keys[g, 0]  # clipped: brighter than recorded
     matched = state.row >= 0
     model_scale = float(np.sqrt(max(1.0, np.median(state.quality[matched] ** 2))))
     if not matched.any():
@@ -528,6 +542,35 @@ def _match(capture: Capture, mask: np.ndarray, options: Options,
     if options.light_subsets and m >= MIN_LIGHTS + 1:
         _light_subsets(capture, state, options, model_scale)
     return state.result(model_scale)
+
+
+def _drop_clipped_lights(capture: Capture, ys, xs, valid, levels, options: Options):
+    """Pixels that lose a band to a few clipped measurements keep the band and drop
+    those lights instead (at most MAX_CLIPPED_FRACTION of them; at least MIN_LIGHTS
+    remain; invalid values still make a band unusable). Returns their dropped-light
+    masks, usable bands and levels."""
+    m = capture.images
+    unusable = capture.scene_clipped[ys, xs]
+    count = _popcount(unusable)
+    invalid = capture.scene_invalid[ys, xs]
+    candidates = (unusable != 0) & (count <= MAX_CLIPPED_FRACTION * m) & \
+        (m - count >= MIN_LIGHTS) & ~valid.all(axis=-1) & ~invalid
+    dropped = np.zeros(len(ys), dtype=np.uint64)
+    if not candidates.any():
+        return dropped, valid, levels
+    pick = np.flatnonzero(candidates)
+    kept = ~_lights_of(unusable[pick], m).T  # (P', m)
+    ov = capture.scene_ov[ys[pick], xs[pick]] * kept[:, None, :]
+    norms = np.sqrt((ov.astype(np.float64) ** 2).sum(axis=-1))
+    bands = norms > capture.min_norm
+    enough = bands.sum(axis=-1) * (kept.sum(axis=-1) - 1) >= 2
+    pick, bands = pick[enough], bands[enough]
+    dropped[pick] = unusable[pick]
+    valid = valid.copy()
+    valid[pick] = bands
+    levels = levels.copy()
+    levels[pick] = 0
+    return dropped, valid, levels
 
 
 @dataclass
@@ -598,7 +641,8 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
     m, n_bands = capture.images, capture.bands
     bits = np.uint64(1) << np.arange(m, dtype=np.uint64)
     before = dict(row=state.row.copy(), quality=state.quality.copy(),
-                  distance=state.distance.copy())
+                  distance=state.distance.copy(), dropped=state.dropped.copy(),
+                  brighter=state.brighter.copy())
     for _ in range(options.max_dropped_lights):
         left = m - _popcount(state.dropped)
         candidates = (state.row >= 0) & (state.quality > SUBSET_TRIGGER) & \
@@ -647,11 +691,11 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
         state.distance[ky, kx] = best_distance[keep]
         state.dropped[ky, kx] |= bits[light]
     # Keep a subset match only where it explains the pixel clearly better.
-    revert = (state.dropped != 0) & ~(state.quality <= SUBSET_GAIN * before["quality"])
+    changed = state.dropped != before["dropped"]
+    revert = changed & ~(state.quality <= SUBSET_GAIN * before["quality"])
     for name, value in before.items():
         getattr(state, name)[revert] = value[revert]
-    state.dropped[revert] = 0
-    ky, kx = np.nonzero(state.dropped)
+    ky, kx = np.nonzero(state.dropped != before["dropped"])
     if not ky.size:
         return
     # Darker or brighter than the final match predicts?
@@ -660,7 +704,7 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
     z = light_residuals(capture.scene_ov[ky, kx],
                         capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ky, kx]],
                         lights, band_mask, capture.model)
-    brighter = np.zeros(len(ky), dtype=np.uint64)
+    brighter = before["brighter"][ky, kx]
     for i in range(m):
         brighter |= np.where(~lights[:, i] & (z[:, i] > 0), bits[i], np.uint64(0))
     state.brighter[ky, kx] = brighter

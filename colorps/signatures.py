@@ -49,6 +49,13 @@ class SignatureSet:
         negative) or clipped and its OV norm exceeds ``min_norm``.
     band_invalid_value, band_clipped, band_dark : (H, W, B) ndarray of bool
         Why a band is not valid (a band may have several reasons).
+    ov : (H, W, B, m) ndarray of float32
+        The observation vectors of the signature bands, invalid measurements
+        (NaN, Inf, negative) set to 0.
+    clipped_lights : (H, W) ndarray of uint64
+        Bit i set when image i has a clipped measurement in a band the
+        signature uses (all 0 beyond 64 images): the match can drop such
+        lights instead of losing the band.
     mode : {"colour", "mono"}
     bands : int
         Number of bands B in the signature (c in colour mode, 1 in mono mode).
@@ -63,6 +70,8 @@ class SignatureSet:
     band_invalid_value: np.ndarray
     band_clipped: np.ndarray
     band_dark: np.ndarray
+    ov: np.ndarray
+    clipped_lights: np.ndarray
     mode: str
     bands: int
     images: int
@@ -183,12 +192,18 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     bad_any = bad.any(axis=0)  # (H, W, c)
     clipped_any = clipped.any(axis=0)
     clean = np.where(bad, 0.0, data).astype(np.float32)
+    unusable = clipped.copy()  # (m, H, W, c)
     if mode == "colour":
         bands = clean
     else:
         bands, sources = _mono_band(clean, band, colourspace)
         bad_any = bad_any[..., sources].any(axis=-1, keepdims=True)
         clipped_any = clipped_any[..., sources].any(axis=-1, keepdims=True)
+        unusable = unusable[..., sources]
+    lights = np.zeros(data.shape[1:3], dtype=np.uint64)
+    if m <= 64:
+        for i, flags in enumerate(unusable.any(axis=-1)):
+            lights[flags] |= np.uint64(1) << np.uint64(i)
 
     ov = np.moveaxis(bands, 0, -1)  # (H, W, B, m)
     norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
@@ -206,6 +221,8 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
         band_invalid_value=bad_any,
         band_clipped=clipped_any,
         band_dark=dark,
+        ov=np.ascontiguousarray(ov, dtype=np.float32),
+        clipped_lights=lights,
         mode=mode,
         bands=b,
         images=m,

@@ -60,7 +60,18 @@ def test_clipped_band_solved_and_albedo_from_unclipped_measurements():
     was_clipped = (bright[..., 0] >= 1.0).any(axis=0) & scene.mask
     assert was_clipped.sum() > 100
     assert result.solved[scene.mask].all()
-    assert (result.bands_used[was_clipped] == 0b110).all()
+    # Clipped lights are dropped and every band kept (or, where too many lights
+    # clipped, the red band goes); without light subsets red always goes.
+    clipped_lights = np.zeros(scene.mask.shape, dtype=np.uint64)
+    for i in range(bright.shape[0]):
+        clipped_lights[(bright[i, ..., 0] >= 1.0)] |= np.uint64(1 << i)
+    dropped_them = (result.dropped_lights[was_clipped] & clipped_lights[was_clipped]) == \
+        clipped_lights[was_clipped]
+    lost_red = result.bands_used[was_clipped] == 0b110
+    assert (dropped_them | lost_red).all() and dropped_them.mean() > 0.5
+    bands_only = reconstruct(clipped, gauge_stack, gauge, mask=scene.mask, clip_level=0.999,
+                             light_subsets=False)
+    assert (bands_only.bands_used[was_clipped] == 0b110).all()
     err = angular_error(result.normals[was_clipped], scene.normals[was_clipped])
     assert err.mean() < 0.5
     rel = np.abs(result.albedo[was_clipped] / (gain * scene.albedo[was_clipped]) - 1)
@@ -86,9 +97,13 @@ def test_mono_clipped_and_bad_values_get_reasons():
     gauge_stack, gauge = gauge_for(lighting, radius=50)
     result = reconstruct(stack, gauge_stack, gauge, mode="mono", mask=scene.mask,
                          clip_level=0.999)
-    assert result.reason[30, 30] == 3 and result.reason[35, 35] == 4
-    assert result.reason[40, 40] == 4
-    assert not result.solved[[30, 35, 40], [30, 35, 40]].any()
+    assert result.reason[30, 30] == Reason.SOLVED_FROM_LIGHT_SUBSET  # light 2 dropped
+    assert result.dropped_lights[30, 30] == 1 << 2
+    assert result.reason[35, 35] == 4 and result.reason[40, 40] == 4
+    assert not result.solved[[35, 40], [35, 40]].any()
+    no_subsets = reconstruct(stack, gauge_stack, gauge, mode="mono", mask=scene.mask,
+                             clip_level=0.999, light_subsets=False)
+    assert no_subsets.reason[30, 30] == 3 and not no_subsets.solved[30, 30]
     # Colour mode solves the same pixels from the bands that remain.
     colour_mode = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, clip_level=0.999)
     assert colour_mode.solved[[30, 35, 40], [30, 35, 40]].all()
