@@ -10,8 +10,10 @@ The signature (and so the normal) comes from the chosen mode: all bands in
 colour mode, one band (luminance or a channel) in mono mode. The albedo is
 always given for every band of the input, from that band's OV norms.
 
-:func:`reconstruct` runs five named steps: check the inputs, compute the
-signatures, match every band subset (:func:`_match`), fit the albedo
+:func:`reconstruct` runs named steps: check the inputs (:func:`_check_inputs`),
+compute the signatures, fit the noise model (:func:`_noise_model`), match every
+group of bands, weights and lights (:func:`_match`, then :func:`_light_subsets`),
+refine the normals past the gauge's pixel grid (:func:`_refine`), fit the albedo
 (:func:`_albedo`), and say why unsolved pixels are unsolved (:func:`_reasons`).
 """
 
@@ -598,18 +600,12 @@ class _MatchState:
                    brighter=np.zeros((h, w), dtype=np.uint64), groups=[],
                    totals=np.zeros(4))
 
-    def record(self, ys, xs, result: GroupResult, bands, code, lights_dropped,
-               where=None) -> None:
-        """Keep a group's matches (only at ``where``, when given)."""
+    def record(self, ys, xs, result: GroupResult, bands, code, lights_dropped) -> None:
+        """Keep a group's matches."""
         self.totals += (result.buckets, result.tests, result.seconds_grid,
                         result.seconds_lookup)
         self.groups.append(MatchGroup(tuple(int(k) for k in bands), result.table_size,
                                       result.grid_n, int(len(ys)), tuple(lights_dropped)))
-        if where is not None:
-            ys, xs = ys[where], xs[where]
-            result = GroupResult(*(getattr(result, f)[where] if f in
-                                   ("rows", "residual", "distance") else getattr(result, f)
-                                   for f in GroupResult.__dataclass_fields__))
         self.row[ys, xs] = result.rows
         self.quality[ys, xs] = result.residual
         self.distance[ys, xs] = result.distance
