@@ -169,7 +169,12 @@ def atomic_target(path):
         raise
 
 
-def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float]:
+def _pixel_type(source) -> str:
+    """A file's stored pixel type, from its :class:`ImageInfo` or its header."""
+    return source.pixel_type if isinstance(source, ImageInfo) else read_info(source).pixel_type
+
+
+def input_levels(source, encoding: Encoding = "auto") -> tuple[float | None, float]:
     """Clip level and dark level (linear) implied by an image file's pixel type.
 
     Integer files: a measurement is clipped at the top code (linear value of
@@ -177,16 +182,17 @@ def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float
     ``encoding`` like the pixels themselves. Floating-point files: nothing is
     clipped and the dark level is :data:`~colorps.options.FLOAT_DARK_LEVEL`.
 
+    Parameters
+    ----------
+    source : str, Path or ImageInfo
+        The file, or its header as already read.
+
     Returns
     -------
     clip_level : float or None
     dark_level : float
     """
-    inp = _open_input(Path(path))
-    try:
-        pixel_type = str(inp.spec().format)
-    finally:
-        inp.close()
+    pixel_type = _pixel_type(source)
     if pixel_type not in _INTEGER_TYPES:
         return None, FLOAT_DARK_LEVEL
     top = _MAX_CODE[pixel_type]
@@ -196,16 +202,13 @@ def input_levels(path, encoding: Encoding = "auto") -> tuple[float | None, float
     return float(levels[0]), float(levels[1])
 
 
-def noise_base(path, encoding: Encoding = "auto"):
+def noise_base(source, encoding: Encoding = "auto"):
     """The :class:`~colorps.noise.NoiseModel` of a file's pixel type (quantisation
-    only: read noise and gain 0, to be fitted or given)."""
+    only: read noise and gain 0, to be fitted or given). ``source`` is the file
+    or its :class:`ImageInfo`."""
     from .noise import NoiseModel
 
-    inp = _open_input(Path(path))
-    try:
-        pixel_type = str(inp.spec().format)
-    finally:
-        inp.close()
+    pixel_type = _pixel_type(source)
     if pixel_type in _INTEGER_TYPES:
         linear = encoding == "linear"
         return NoiseModel(read=0.0, gain=0.0, pixel_type="int",

@@ -101,9 +101,9 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         if not mask.any():
             raise InputError(f"{mask_path}: the mask selects no pixel (non-zero = solve)")
     scene, names = read_stack(scene_paths, options.encoding, name="scene", progress=progress)
-    scene_noise = noise_base(scene_paths[0], options.encoding)
+    scene_noise = noise_base(scene_info, options.encoding)
     requested = options  # "auto" levels resolve per stack, from its own files
-    options = options.with_levels(*input_levels(scene_paths[0], options.encoding))
+    options = options.with_levels(*input_levels(scene_info, options.encoding))
     if lights is not None:
         gauge = Gauge.virtual(light_set, radius=virtual_radius, bands=scene.shape[3])
         gauge_stack, found = gauge.stack, gauge.sphere
@@ -122,8 +122,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         gauge_stack, _ = read_stack(gauge_paths, options.encoding, name="gauge",
                                     progress=progress)
         # Levels and quantisation belong to each stack's files (checked alike above).
-        gauge_levels = requested.with_levels(*input_levels(gauge_paths[0], options.encoding))
-        gauge_noise = noise_base(gauge_paths[0], options.encoding)
+        gauge_levels = requested.with_levels(*input_levels(gauge_info, options.encoding))
+        gauge_noise = noise_base(gauge_info, options.encoding)
         found = find_sphere(gauge_stack) if sphere == "auto" else tuple(sphere)
         gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
 
