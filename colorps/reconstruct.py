@@ -353,7 +353,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
                                 gain=gauge_model.gain, estimated=gauge_model.estimated)
     capture = Capture(
         scene_ov=scene_sig.ov, scene_valid=scene_sig.band_valid,
-        gauge_ov=_ov(gauge_sig), gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
+        gauge_ov=gauge_sig.ov, gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
         gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
         gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
         scene_invalid=scene_sig.band_invalid_value.any(axis=-1))
@@ -537,9 +537,9 @@ def _match(capture: Capture, mask: np.ndarray, options: Options,
             state.dropped[gy, gx] = keys[g, 0]
             state.brighter[gy, gx] = keys[g, 0]  # clipped: brighter than recorded
     matched = state.row >= 0
-    model_scale = float(np.sqrt(max(1.0, np.median(state.quality[matched] ** 2))))
-    if not matched.any():
-        model_scale = 1.0
+    model_scale = 1.0
+    if matched.any():
+        model_scale = float(np.sqrt(max(1.0, np.median(state.quality[matched] ** 2))))
     state.quality[matched] /= model_scale
     if options.light_subsets and m >= MIN_LIGHTS + 1:
         _light_subsets(capture, state, options, model_scale)
@@ -832,13 +832,6 @@ def _noise_model(gauge_stack: np.ndarray, gauge: Gauge, gauge_sig: SignatureSet,
     if options.gain != "auto":
         changes["gain"] = float(options.gain)
     return dataclasses.replace(base, **changes) if changes else base
-
-
-def _ov(sig: SignatureSet) -> np.ndarray:
-    """(H, W, B, m) per-band observation vectors of a signature set (0: unusable band)."""
-    h, w, b = sig.norms.shape
-    unit = sig.signatures.reshape(h, w, b, sig.images)
-    return (unit * sig.norms[..., None]).astype(np.float32)
 
 
 def _lights_of(bitmask: np.ndarray, m: int) -> np.ndarray:

@@ -66,8 +66,7 @@ def test_weighted_matches_are_brute_force_nearest(m, seed, levels, count):
     scene = synth.smiley_surface(64)
     stack = synth.render(scene, lights, noise=0.01, seed=seed % 1000)
     sig_s, sig_g = compute_signatures(stack), compute_signatures(gauge_stack)
-    ov = lambda s: (s.signatures.reshape(*s.norms.shape, m) * s.norms[..., None])  # noqa: E731
-    capture = Capture(ov(sig_s), sig_s.band_valid, ov(sig_g),
+    capture = Capture(sig_s.ov, sig_s.band_valid, sig_g.ov,
                       sig_g.band_valid & gauge.mask[..., None], gauge.normals.reshape(-1, 3),
                       NoiseModel(0.01, 0.0), 1e-4)
     ys, xs = np.nonzero(scene.mask & sig_s.valid)
