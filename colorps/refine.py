@@ -111,17 +111,15 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
 def noise_arrays(scene: NoiseModel, gauge: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's description of two noise models: (2, 3) (read^2, gain, kind) and
     (2, Q) quantisation sigma over 0..1 (integer files)."""
-    from .noise import QUANTISATION_SAMPLES, quantisation_sigma
+    from .noise import QUANTISATION_SAMPLES, _quantisation_table
 
     kinds = {"float": 0.0, "half": 1.0, "int": 2.0}
-    levels = np.linspace(0.0, 1.0, QUANTISATION_SAMPLES)
     noise = np.zeros((2, 3))
     table = np.zeros((2, QUANTISATION_SAMPLES))
     for row, model in enumerate((scene, gauge)):
         noise[row] = (model.read ** 2, model.gain, kinds[model.pixel_type])
-        if model.pixel_type == "int":
-            table[row] = quantisation_sigma(levels, pixel_type="int", top_code=model.top_code,
-                                            encoding=model.encoding)
+        if model.pixel_type == "int":  # the table NoiseModel.sigma interpolates
+            table[row] = _quantisation_table(model.top_code, model.encoding)[1]
     return noise, table
 
 
