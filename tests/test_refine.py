@@ -81,3 +81,21 @@ def test_refinement_works_for_any_gauge_given_as_normals():
     e_fine = np.median(angular_error(fine.normals[ok], scene.normals[ok]))
     e_table = np.median(angular_error(table.normals[ok], scene.normals[ok]))
     assert e_fine * 5 <= e_table, (e_fine, e_table)
+
+
+@pytest.mark.parametrize("model", [
+    dict(read=0.002, gain=1e-4, pixel_type="float"),
+    dict(read=0.001, gain=0.0, pixel_type="half"),
+    dict(read=0.0, gain=2e-5, pixel_type="int", top_code=255, encoding="srgb"),
+    dict(read=0.0005, gain=0.0, pixel_type="int", top_code=65535, encoding="linear")])
+def test_kernel_noise_matches_the_noise_model(model):
+    """The refinement kernel's copy of sigma(v)^2 agrees with NoiseModel.sigma."""
+    from colorps import _refine_kernels
+    from colorps.noise import NoiseModel
+    from colorps.refine import noise_arrays
+
+    noise = NoiseModel(**model)
+    arrays, table = noise_arrays(noise, noise)
+    values = np.linspace(0.0, 1.0, 257)
+    kernel = np.array([_refine_kernels._variance(v, arrays, 0, table) for v in values])
+    np.testing.assert_allclose(np.sqrt(kernel), noise.sigma(values), rtol=2e-3, atol=1e-9)
