@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
@@ -44,6 +45,9 @@ MIN_CELL_LIMIT = 1 << 20
 #: Queries numba hands to a thread at a time (lookup cost varies over an
 #: image: noisy or unlit regions), in units of the kernel's QUERY_CHUNK.
 THREAD_CHUNKS = 4
+#: Fine scan plans kept, one per grid size N (they depend on N alone, and a
+#: capture's groups mostly share one N: computing it was 40 % of a build).
+SCAN_ORDER_CACHE = 4
 
 
 def fine_radius(n: int) -> int:
@@ -84,7 +88,7 @@ def _scan_order(extent: int) -> tuple[np.ndarray, np.ndarray]:
     """Displacements in {-extent+1..extent-1}^2 sorted by eq. 15, ties by length.
 
     Returns the (L, 2) int32 offsets and their squared ``||.||_dd`` norms (in
-    cell units, int64).
+    cell units, int64), read-only.
     """
     r = np.arange(-extent + 1, extent, dtype=np.int64)
     dr, ds = np.meshgrid(r, r, indexing="ij")
@@ -93,7 +97,12 @@ def _scan_order(extent: int) -> tuple[np.ndarray, np.ndarray]:
     dd2 = np.maximum(np.abs(dr) - 1, 0) ** 2 + np.maximum(np.abs(ds) - 1, 0) ** 2
     order = np.lexsort((dr * dr + ds * ds, dd2))
     offsets = np.stack([dr[order], ds[order]], axis=1).astype(np.int32)
-    return offsets, dd2[order]
+    return _read_only(offsets), _read_only(dd2[order])
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
 
 
 def _row_runs(offsets: np.ndarray, dd2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -288,25 +297,37 @@ def _blocks(entry_sketch: np.ndarray, block_start: np.ndarray, n: int, block: in
                                 bound2=(block * delta) ** 2 * dd2.astype(np.float64))
 
 
-def _scan_plan(n: int, dims: int, block: int, delta: float) -> _grid_kernels.ScanPlan:
-    """Phase 1's scan order: runs of cells (D <= RUN_SCAN_DIMS) or cell by cell."""
-    offsets, dd2 = _scan_order(n)
+@lru_cache(maxsize=SCAN_ORDER_CACHE)
+def _fine_scan(n: int, use_runs: bool) -> tuple:
+    """The part of the scan plan that depends on N alone (cached, read-only):
+    fine offsets and their dd2 (cell by cell) or row runs and theirs."""
     fine_dd2_max = fine_radius(n) ** 2
+    # Offsets with dd2 <= fine_dd2_max have |dr|, |ds| <= fine_radius + 1: the
+    # scan order of that extent starts with the same offsets, in the same order.
+    offsets, dd2 = _scan_order(min(n, fine_radius(n) + 2))
     n_fine = int(np.searchsorted(dd2, fine_dd2_max, side="right"))
     fine_offsets, fine_dd2 = offsets[:n_fine], dd2[:n_fine]
-    use_runs = dims <= _grid_kernels.RUN_SCAN_DIMS
     runs, run_dd2 = np.zeros((0, 3), dtype=np.int64), fine_dd2[:0]
     if use_runs:
         runs, run_dd2 = _row_runs(fine_offsets, fine_dd2)
         fine_offsets, fine_dd2 = fine_offsets[:0], fine_dd2[:0]
+    return (_read_only(runs), _read_only(run_dd2), np.ascontiguousarray(fine_offsets),
+            fine_dd2, n_fine == (2 * n - 1) ** 2, fine_dd2_max)
+
+
+def _scan_plan(n: int, dims: int, block: int, delta: float) -> _grid_kernels.ScanPlan:
+    """Phase 1's scan order: runs of cells (D <= RUN_SCAN_DIMS) or cell by cell."""
+    use_runs = dims <= _grid_kernels.RUN_SCAN_DIMS
+    runs, run_dd2, fine_offsets, fine_dd2, fine_is_all, fine_dd2_max = _fine_scan(
+        n, use_runs)
     return _grid_kernels.ScanPlan(
         use_runs=use_runs, runs=runs, run_bound=delta * np.sqrt(run_dd2.astype(np.float64)),
         # The last column of each column's block, looked up: an integer
         # division per run cost 8-14 % of a mono lookup (measured).
         block_last=np.minimum((np.arange(n) // block + 1) * block - 1, n - 1),
-        offsets=np.ascontiguousarray(fine_offsets),
+        offsets=fine_offsets,
         bound=delta * np.sqrt(fine_dd2.astype(np.float64)),
-        fine_is_all=n_fine == offsets.shape[0], fine_dd2_max=fine_dd2_max,
+        fine_is_all=fine_is_all, fine_dd2_max=fine_dd2_max,
         # The per-entry sketch bound of phase 2 costs one vector of float32
         # lanes; it pays when a full distance costs more (measured: 5-7 %
         # faster at D = 30 than without it).

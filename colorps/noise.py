@@ -65,8 +65,7 @@ def quantisation_sigma(values: np.ndarray, *, pixel_type: PixelType, top_code: i
     if pixel_type == "float":
         return np.zeros_like(v)
     if pixel_type == "half":
-        ulp = np.exp2(np.floor(np.log2(np.maximum(np.abs(v), 2.0 ** -14))) - 10)
-        return ulp / np.sqrt(12.0)
+        return _half_ulp(v) / np.sqrt(12.0)
     step = 1.0 / top_code
     if encoding == "linear":
         return np.full_like(v, step / np.sqrt(12.0))
@@ -76,6 +75,17 @@ def quantisation_sigma(values: np.ndarray, *, pixel_type: PixelType, top_code: i
     up = srgb_decode(np.clip(code + step / 2, 0.0, 1.0)).astype(np.float64)
     down = srgb_decode(np.clip(code - step / 2, 0.0, 1.0)).astype(np.float64)
     return (up - down) / np.sqrt(12.0)
+
+
+def _half_ulp(values: np.ndarray) -> np.ndarray:
+    """One half-float unit in the last place at ``values``: 2^(e - 10) for
+    2^e <= |v| < 2^(e + 1), and 2^-24 below 2^-14 (subnormals).
+
+    Read off the float32 exponent bits: integer work, no logarithm.
+    """
+    v = np.maximum(np.abs(np.asarray(values, np.float32)), np.float32(2.0 ** -14))
+    exponent_bits = v.view(np.int32) & np.int32(0x7F800000)
+    return (exponent_bits - np.int32(10 << 23)).view(np.float32)
 
 
 @dataclass(frozen=True)
@@ -122,8 +132,8 @@ class NoiseModel:
             q = np.interp(v, levels, table).astype(np.float32)
             variance += q * q
         elif self.pixel_type == "half":
-            q = quantisation_sigma(v, pixel_type="half").astype(np.float32)
-            variance += q * q
+            q = _half_ulp(v)
+            variance += q * q / np.float32(12.0)
         return np.sqrt(variance)
 
     def as_dict(self) -> dict:

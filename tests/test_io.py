@@ -46,6 +46,19 @@ def test_integer_formats_decode_srgb(tmp_path, rng, ext, dtype, step):
     np.testing.assert_allclose(raw, encoded, atol=step if ext == ".jpg" else 1e-6)
 
 
+def test_srgb_encoder_agrees_with_colour_science_and_keeps_shape():
+    from colorps.io import srgb_encode
+
+    values = np.linspace(-0.2, 1.3, 2 * 5 * 7, dtype=np.float32).reshape(2, 5, 7)
+    expected = colour.cctf_encoding(np.clip(values, 0, 1).astype(np.float64), "sRGB")
+    encoded = srgb_encode(values)
+    assert encoded.shape == values.shape
+    # Far below one 16-bit code (1.5e-5) and 8-bit codes land on the same integer.
+    np.testing.assert_allclose(encoded, expected, atol=1e-5)
+    assert np.array_equal(np.round(encoded * 255), np.round(expected * 255))
+    assert srgb_encode(np.array([np.nan, 2.0])).tolist() == [0.0, 1.0]
+
+
 def test_srgb_override_and_decoder(tmp_path):
     values = np.linspace(0, 1, 11, dtype=np.float32)
     np.testing.assert_allclose(srgb_decode(values), colour.cctf_decoding(values, "sRGB"),

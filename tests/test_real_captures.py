@@ -45,6 +45,18 @@ def test_quantisation_of_srgb_codes_grows_with_the_level():
     assert quantisation_sigma(np.array([0.5]), pixel_type="float")[0] == 0
 
 
+def test_half_float_quantisation_is_one_half_ulp_over_sqrt12():
+    values = np.concatenate([np.geomspace(1e-7, 60000.0, 5000), [0.0, 2.0 ** -14, 1.0]])
+    # numpy's own float16 spacing, at values already representable in half
+    halves = values.astype(np.float16)
+    expected = np.spacing(halves).astype(np.float64) / np.sqrt(12.0)
+    got = quantisation_sigma(halves.astype(np.float32), pixel_type="half")
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    model = NoiseModel(read=0.0, gain=0.0, pixel_type="half")
+    np.testing.assert_allclose(model.sigma(halves[1:].astype(np.float32)), expected[1:],
+                               rtol=1e-6)
+
+
 # ------------------------------------------------------------------ band weights
 def test_weight_levels_follow_snr():
     norms = np.array([[1.0, 0.5, 0.01], [0.2, 0.2, 0.2]])
@@ -220,3 +232,15 @@ def test_8bit_one_sided_capture_with_defaults_and_auto_sphere(tmp_path):
     assert stats["solved_from_light_subset"] > 0
     lights = read_image(out / "lights.exr")[0][..., 0]
     assert (lights[mask] > 0).sum() == stats["solved_from_light_subset"]
+
+
+def test_pixel_groups_are_the_distinct_rows():
+    from colorps.reconstruct import _group_rows
+
+    rng = np.random.default_rng(5)
+    rows = np.column_stack([rng.integers(0, 3, 5000) << 40, rng.integers(0, 8, 5000),
+                            rng.integers(-2, 1, (5000, 3))])
+    keys, group = _group_rows(rows)
+    expected_keys, expected_group = np.unique(rows, axis=0, return_inverse=True)
+    assert np.array_equal(keys, expected_keys)
+    assert np.array_equal(group, expected_group.ravel())
