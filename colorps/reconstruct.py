@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _pixel_kernels
 from ._checks import check_stack
 from .errors import InputError
 from .gauge import Gauge, parse_albedo
@@ -35,7 +36,7 @@ from .options import FLOAT_DARK_LEVEL, MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason, reason_counts
 from .refine import refine_normals
 from .residuals import band_variance, light_residuals
-from .signatures import SignatureSet, compute_signatures, measurement_flags
+from .signatures import SignatureSet, compute_signatures
 
 __all__ = ["Reconstruction", "ReconstructionStats", "MatchGroup", "Timings", "reconstruct",
            "GaugeWarning", "LowSolvedWarning"]
@@ -378,10 +379,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         offset = refined.offset
     t_refine = time.perf_counter() - t0
     albedo = np.full((h, w, c), np.nan, dtype=np.float32)
-    dropped_lights = _lights_of(matches.dropped[solved], m)  # (m, P)
-    albedo[solved] = _albedo(scene[:, solved],
-                             _gauge_at(gauge_stack, matches.row[solved], offset),
-                             gauge_albedo, options.clip_level, excluded=dropped_lights)
+    albedo[solved] = _albedo(scene, gauge_stack, solved, matches, offset, gauge_albedo,
+                             options.clip_level)
     reason = _reasons(scene_sig, mask, solved, matched, matches.dropped)
     n_masked = int(mask.sum())
     if n_masked and 0 < solved.sum() < LOW_SOLVED_FRACTION * n_masked:
@@ -749,32 +748,23 @@ def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
     return ys[order], xs[order]
 
 
-def _albedo(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_albedo: np.ndarray,
-            clip_level: float | None, excluded: np.ndarray | None = None) -> np.ndarray:
-    """Per-band albedo of matched pixels (eq. 6, or least squares on usable values).
+def _albedo(scene: np.ndarray, gauge_stack: np.ndarray, solved: np.ndarray,
+            matches: "_Matches", offset: np.ndarray, gauge_albedo: np.ndarray,
+            clip_level: float | None) -> np.ndarray:
+    """(P, c) albedo of the solved pixels (method eq. 6, or least squares on the
+    usable measurements), against the gauge at each refined position.
 
-    Parameters are (m, P, c) observation vectors of the scene pixels and of
-    their matched gauge pixels, the (c,) gauge albedo, and optionally (m, P)
-    measurements to leave out (lights dropped from a pixel's match).
+    See :func:`colorps._pixel_kernels.albedo`; a pixel's dropped lights are
+    left out of its fit.
     """
-    bad, clipped = measurement_flags(scene_ov, clip_level)
-    usable = ~bad & ~clipped
-    if excluded is not None:
-        usable &= ~excluded[..., None]
-    s = np.where(usable, scene_ov, 0.0).astype(np.float64)
-    g = gauge_ov.astype(np.float64)
-    all_usable = usable.all(axis=0)
-    g_used = np.where(usable, g, 0.0)
-    energy = (g * g).sum(axis=0)
-    used_energy = (g_used * g_used).sum(axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):  # a black gauge band: NaN
-        eq6 = np.sqrt((s * s).sum(axis=0)) / np.sqrt(energy)
-        lsq = (s * g_used).sum(axis=0) / used_energy
-    # Usable measurements that carry almost none of the light (e.g. every lit one
-    # clipped) cannot fix the scale: NaN, not a guess.
-    lsq = np.where(used_energy >= MIN_ALBEDO_ENERGY * energy, lsq, np.nan)
-    ratio = np.where(all_usable, eq6, lsq)
-    return (ratio * gauge_albedo).astype(np.float32)
+    ys, xs = np.nonzero(solved)
+    out = np.empty((len(ys), scene.shape[3]), dtype=np.float32)
+    excluded = np.ascontiguousarray(_lights_of(matches.dropped[ys, xs], scene.shape[0]).T)
+    _pixel_kernels.albedo(scene, ys, xs, gauge_stack, matches.row[ys, xs],
+                          np.ascontiguousarray(offset, dtype=np.float32), excluded,
+                          np.inf if clip_level is None else float(clip_level),
+                          np.asarray(gauge_albedo, dtype=np.float64), MIN_ALBEDO_ENERGY, out)
+    return out
 
 
 def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
@@ -800,24 +790,6 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: _M
                           matches.bands_used[ys, xs], matches.dropped[ys, xs], capture.model,
                           capture.gauge_model or capture.model,
                           model_scale=matches.model_scale, threads=options.threads)
-
-
-def _gauge_at(gauge_stack: np.ndarray, rows: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """(m, P, c) gauge measurements at matched pixel + sub-pixel offset (bilinear)."""
-    m, hg, wg, c = gauge_stack.shape
-    pixels = np.ascontiguousarray(np.moveaxis(gauge_stack, 0, 2)).reshape(hg * wg, m, c)
-    qy, qx = np.divmod(rows, wg)
-    x = np.clip(qx + offset[:, 0], 0, wg - 1)
-    y = np.clip(qy + offset[:, 1], 0, hg - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(wg - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(hg - 2, 0))
-    x1 = np.minimum(x0 + 1, wg - 1)
-    y1 = np.minimum(y0 + 1, hg - 1)
-    fx = (x - x0).astype(np.float32)[:, None, None]
-    fy = (y - y0).astype(np.float32)[:, None, None]
-    top = pixels[y0 * wg + x0] * (1 - fx) + pixels[y0 * wg + x1] * fx
-    bottom = pixels[y1 * wg + x0] * (1 - fx) + pixels[y1 * wg + x1] * fx
-    return np.moveaxis(top * (1 - fy) + bottom * fy, 0, 1).astype(np.float32)
 
 
 def _median(values: np.ndarray) -> float | None:

@@ -24,11 +24,12 @@ from typing import Literal
 
 import numpy as np
 
+from . import _pixel_kernels
 from ._checks import check_stack
 from .errors import InputError
 from .options import FLOAT_DARK_LEVEL, dark_threshold
 
-__all__ = ["SignatureSet", "compute_signatures", "luminance", "measurement_flags"]
+__all__ = ["SignatureSet", "compute_signatures", "luminance", "luminance_weights"]
 
 
 @dataclass(frozen=True)
@@ -92,47 +93,43 @@ def luminance(stack, colourspace: str = "sRGB") -> np.ndarray:
     -------
     (...) ndarray of float32
     """
-    import colour
-
     rgb = np.asarray(stack, dtype=np.float32)
     if rgb.shape[-1] != 3:
         raise InputError(f"luminance needs 3 (RGB) bands, got {rgb.shape[-1]}")
+    return rgb @ luminance_weights(colourspace)
+
+
+def luminance_weights(colourspace: str = "sRGB") -> np.ndarray:
+    """(3,) float32: the Y row of a colour-science colourspace's RGB -> XYZ matrix.
+
+    The normative matrix, as used by ``colour.RGB_to_XYZ``.
+    """
+    import colour
+
     try:
         space = colour.RGB_COLOURSPACES[colourspace]
     except KeyError:
         raise InputError(f"colourspace: unknown RGB colourspace {colourspace!r}") from None
-    # The Y row of the colourspace's normative RGB -> XYZ matrix, as used by
-    # colour.RGB_to_XYZ.
-    weights = np.asarray(space.matrix_RGB_to_XYZ[1], dtype=np.float32)
-    return rgb @ weights
+    return np.asarray(space.matrix_RGB_to_XYZ[1], dtype=np.float32)
 
 
-def measurement_flags(values: np.ndarray, clip_level: float | None
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Per measurement: invalid (NaN, Inf, negative) and clipped (>= clip_level).
-
-    The one definition of a usable measurement, shared by the signatures and
-    the albedo fit.
-    """
-    bad = ~(values >= 0) | ~np.isfinite(values)  # NaN compares False
-    clipped = (values >= clip_level) if clip_level is not None else \
-        np.zeros(values.shape, dtype=bool)
-    return bad, clipped
-
-
-def _mono_band(stack: np.ndarray, band: int | Literal["luminance"] | None,
-               colourspace: str) -> tuple[np.ndarray, list[int]]:
-    """The single band of mono mode, and the input bands it is made from."""
-    c = stack.shape[-1]
+def _mono_mixing(c: int, band: int | Literal["luminance"] | None,
+                 colourspace: str) -> np.ndarray:
+    """(1, c) weights of the single band of mono mode over the input channels."""
     if band is None:
         band = "luminance" if c == 3 else 0
+    mixing = np.zeros((1, c), dtype=np.float32)
     if isinstance(band, str):
         if band != "luminance":
             raise InputError(f"band: expected a channel index or 'luminance', got {band!r}")
-        return luminance(stack, colourspace)[..., np.newaxis], list(range(c))
+        if c != 3:
+            raise InputError(f"luminance needs 3 (RGB) bands, got {c}")
+        mixing[0] = luminance_weights(colourspace)
+        return mixing
     if isinstance(band, bool) or not isinstance(band, (int, np.integer)) or not 0 <= band < c:
         raise InputError(f"band: expected a channel index in 0..{c - 1}, got {band!r}")
-    return stack[..., band:band + 1], [int(band)]
+    mixing[0, band] = 1.0
+    return mixing
 
 
 def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
@@ -187,41 +184,32 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     if clip_level is not None and not clip_level > 0:
         raise InputError(f"clip_level: expected a value > 0 or None, got {clip_level!r}")
 
-    # Per input band and pixel: any invalid (NaN, Inf, negative) or clipped measurement.
-    bad, clipped = measurement_flags(data, clip_level)
-    bad_any = bad.any(axis=0)  # (H, W, c)
-    clipped_any = clipped.any(axis=0)
-    clean = np.where(bad, 0.0, data).astype(np.float32)
-    unusable = clipped.copy()  # (m, H, W, c)
+    c, (h, w) = data.shape[3], data.shape[1:3]
     if mode == "colour":
-        bands = clean
+        mixing = np.eye(c, dtype=np.float32)
     else:
-        bands, sources = _mono_band(clean, band, colourspace)
-        bad_any = bad_any[..., sources].any(axis=-1, keepdims=True)
-        clipped_any = clipped_any[..., sources].any(axis=-1, keepdims=True)
-        unusable = unusable[..., sources]
-    lights = np.zeros(data.shape[1:3], dtype=np.uint64)
-    if m <= 64:
-        for i, flags in enumerate(unusable.any(axis=-1)):
-            lights[flags] |= np.uint64(1) << np.uint64(i)
-
-    ov = np.moveaxis(bands, 0, -1)  # (H, W, B, m)
-    norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
-    dark = ~bad_any & (norms <= min_norm)
+        mixing = _mono_mixing(c, band, colourspace)
+    b = mixing.shape[0]
+    ov = np.empty((h, w, b, m), dtype=np.float32)
+    sig = np.empty((h, w, b * m), dtype=np.float32)
+    norms = np.empty((h, w, b), dtype=np.float32)
+    bad_any, clipped_any, dark = (np.empty((h, w, b), dtype=bool) for _ in range(3))
+    lights = np.empty((h, w), dtype=np.uint64)
+    _pixel_kernels.observation_vectors(
+        np.ascontiguousarray(data, dtype=np.float32), mixing,
+        np.inf if clip_level is None else float(clip_level), float(min_norm),
+        ov, sig, norms, bad_any, clipped_any, dark, lights)
     band_valid = ~bad_any & ~clipped_any & ~dark
-    safe = np.where(band_valid, norms, 1.0)
-    sig = np.where(band_valid[..., None], ov / safe[..., None], 0.0).astype(np.float32)
-    h, w, b = band_valid.shape
     valid = band_valid.all(axis=-1)
     return SignatureSet(
-        signatures=np.ascontiguousarray(sig.reshape(h, w, b * m)),
-        norms=norms.astype(np.float32),
+        signatures=sig,
+        norms=norms,
         valid=valid,
         band_valid=band_valid,
         band_invalid_value=bad_any,
         band_clipped=clipped_any,
         band_dark=dark,
-        ov=np.ascontiguousarray(ov, dtype=np.float32),
+        ov=ov,
         clipped_lights=lights,
         mode=mode,
         bands=b,

@@ -1,0 +1,149 @@
+"""Compiled per-pixel kernels: observation vectors and albedo (private).
+
+The API is :func:`colorps.compute_signatures` and :func:`colorps.reconstruct`;
+these kernels do their whole-image work in one parallel pass over pixels, with
+no image-sized temporaries. Conventions are those of :mod:`colorps.signatures`:
+a measurement is **invalid** when negative or not finite, **clipped** when at
+or above the clip level, and a band's OV is **dark** when its Euclidean norm
+is at most ``min_norm``.
+"""
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, inline="always")
+def _invalid(v):
+    return not (v >= 0.0) or not np.isfinite(v)
+
+
+@njit(cache=True, parallel=True)
+def observation_vectors(stack, mixing, clip_level, min_norm,
+                        ov, signatures, norms, band_invalid, band_clipped, band_dark,
+                        clipped_lights):
+    """Fill the observation vectors of every pixel, their norms and unit vectors.
+
+    Parameters
+    ----------
+    stack : (m, H, W, c) float32
+        Linear measurements.
+    mixing : (B, c) float32
+        Band b's measurement is sum_k mixing[b, k] x (measurement of channel k;
+        0 where invalid): the identity in colour mode, a luminance row or a
+        one-hot row in mono mode. A band's sources are its channels with a
+        non-zero weight; their invalid or clipped measurements are the band's.
+    clip_level, min_norm : float
+        ``np.inf`` for no clipping.
+
+    Outputs (written in place)
+    --------------------------
+    ov : (H, W, B, m) float32
+    signatures : (H, W, B * m) float32
+        Band-major unit vectors, 0 where the band is unusable.
+    norms : (H, W, B) float32
+    band_invalid, band_clipped, band_dark : (H, W, B) bool
+    clipped_lights : (H, W) uint64
+        Bit i set when a source measurement of light i is clipped (m <= 64).
+    """
+    m, h, w, c = stack.shape
+    n_bands = mixing.shape[0]
+    track_lights = m <= 64
+    for y in prange(h):
+        for x in range(w):
+            lights = np.uint64(0)
+            for b in range(n_bands):
+                invalid = False
+                clipped = False
+                total = 0.0
+                for i in range(m):
+                    value = np.float32(0.0)
+                    for k in range(c):
+                        weight = mixing[b, k]
+                        if weight == 0.0:
+                            continue
+                        v = stack[i, y, x, k]
+                        if v >= clip_level:  # +Inf too: clipped and invalid
+                            clipped = True
+                            if track_lights:
+                                lights |= np.uint64(1) << np.uint64(i)
+                        if _invalid(v):
+                            invalid = True
+                            continue
+                        value += weight * v
+                    ov[y, x, b, i] = value
+                    total += np.float64(value) * np.float64(value)
+                norm = np.sqrt(total)
+                norms[y, x, b] = norm
+                dark = not invalid and norm <= min_norm
+                band_invalid[y, x, b] = invalid
+                band_clipped[y, x, b] = clipped
+                band_dark[y, x, b] = dark
+                usable = not invalid and not clipped and not dark
+                for i in range(m):
+                    signatures[y, x, b * m + i] = (ov[y, x, b, i] / norm) if usable else 0.0
+            clipped_lights[y, x] = lights
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albedo,
+           min_energy, out):
+    """Per-band albedo of pixels (ys, xs) matched to gauge pixels ``rows``.
+
+    The gauge's measurements are interpolated bilinearly at the matched pixel
+    plus the sub-pixel ``offset`` (columns, rows). With every measurement
+    usable the albedo ratio is |S_k| / |G_k| (method eq. 6); otherwise the
+    least-squares scale over the usable ones, NaN when those carry under
+    ``min_energy`` of |G_k|^2. Times ``gauge_albedo[k]``.
+
+    Parameters
+    ----------
+    scene : (m, H, W, c) float32
+    ys, xs, rows : (P,) int64
+        Pixel coordinates and flat gauge pixel indices (row-major).
+    gauge : (m, Hg, Wg, c) float32
+    offset : (P, 2) float32
+    excluded : (P, m) bool
+        Measurements left out (lights dropped from the pixel's match).
+    clip_level : float
+        ``np.inf`` for no clipping.
+    gauge_albedo : (c,) float64
+    min_energy : float
+    out : (P, c) float32
+        Written in place.
+    """
+    m, hg, wg, c = gauge.shape
+    for p in prange(ys.shape[0]):
+        qy, qx = rows[p] // wg, rows[p] % wg
+        gx = min(max(qx + offset[p, 0], 0.0), wg - 1.0)
+        gy = min(max(qy + offset[p, 1], 0.0), hg - 1.0)
+        x0 = min(int(np.floor(gx)), max(wg - 2, 0))
+        y0 = min(int(np.floor(gy)), max(hg - 2, 0))
+        x1 = min(x0 + 1, wg - 1)
+        y1 = min(y0 + 1, hg - 1)
+        fx = np.float32(gx - x0)
+        fy = np.float32(gy - y0)
+        for k in range(c):
+            scene_energy = 0.0
+            gauge_energy = 0.0
+            used_energy = 0.0
+            product = 0.0
+            all_usable = True
+            for i in range(m):
+                top = gauge[i, y0, x0, k] * (1 - fx) + gauge[i, y0, x1, k] * fx
+                bottom = gauge[i, y1, x0, k] * (1 - fx) + gauge[i, y1, x1, k] * fx
+                g = np.float64(top * (1 - fy) + bottom * fy)
+                s = np.float64(scene[i, ys[p], xs[p], k])
+                gauge_energy += g * g
+                if _invalid(s) or s >= clip_level or excluded[p, i]:
+                    all_usable = False
+                    continue
+                scene_energy += s * s
+                used_energy += g * g
+                product += s * g
+            if all_usable:
+                ratio = np.sqrt(scene_energy) / np.sqrt(gauge_energy)
+            elif used_energy >= min_energy * gauge_energy:
+                ratio = product / used_energy
+            else:
+                ratio = np.nan
+            out[p, k] = ratio * gauge_albedo[k]
