@@ -39,7 +39,7 @@ from .residuals import band_variance, light_residuals
 from .signatures import SignatureSet, compute_signatures
 
 __all__ = ["Reconstruction", "ReconstructionStats", "MatchGroup", "Timings", "reconstruct",
-           "GaugeWarning", "LowSolvedWarning"]
+           "first_residuals", "measured_model_scale", "GaugeWarning", "LowSolvedWarning"]
 
 # ---------------------------------------------------------------- tuning
 #: Side (pixels) of the tiles in which pixels are looked up. Neighbouring pixels
@@ -273,6 +273,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
                 mask=None, noise: NoiseModel | None = None,
                 gauge_noise: NoiseModel | None = None,
                 gauge_levels: tuple[float | None, float] | None = None,
+                model_scale: float | None = None,
                 progress: bool = False, **changes) -> Reconstruction:
     """Recover normals and intrinsic colour of a scene from a gauge.
 
@@ -297,6 +298,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     gauge_noise, gauge_levels : optional
         The gauge's pixel type (a NoiseModel) and (clip, dark) levels, when its
         files are stored differently from the scene's (default: the scene's).
+    model_scale : float, optional
+        Divide the residuals by this instead of the model scale measured from
+        this scene's first matches (:func:`first_residuals`): pieces of one
+        capture processed apart share the whole capture's scale.
     progress : bool, optional
         Show a progress bar.
     **changes
@@ -334,33 +339,13 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     m, h, w, c = scene.shape
     gauge_albedo = parse_albedo(gauge.albedo, c)
 
-    t0 = time.perf_counter()
-    min_norm = dark_threshold(options.dark_level, m)
-    signature_options = dict(band=options.band, colourspace=options.colourspace,
-                             min_norm=min_norm, clip_level=options.clip_level)
-    scene_sig = compute_signatures(scene, options.mode, **signature_options)
-    if gauge_levels is not None:
-        signature_options.update(clip_level=gauge_levels[0],
-                                 min_norm=dark_threshold(gauge_levels[1], m))
-    gauge_sig = compute_signatures(gauge_stack, options.mode, **signature_options)
-    usable_gauge = float((gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum())
-    said = []
-    if usable_gauge < GAUGE_USABLE_WARNING:
-        said.append(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
-                    "(clipped, too dark or invalid): check the gauge's exposure")
-        warnings.warn(said[-1], GaugeWarning, stacklevel=2)
-    gauge_model = _noise_model(gauge_stack, gauge, gauge_sig, options, gauge_noise or noise)
-    model = dataclasses.replace(noise or gauge_model, read=gauge_model.read,
-                                gain=gauge_model.gain, estimated=gauge_model.estimated)
-    capture = Capture(
-        scene_ov=scene_sig.ov, scene_valid=scene_sig.band_valid,
-        gauge_ov=gauge_sig.ov, gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
-        gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
-        gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
-        scene_invalid=scene_sig.band_invalid_value.any(axis=-1))
-    t_signatures = time.perf_counter() - t0
+    setup = _setup(scene, gauge_stack, gauge, options, noise, gauge_noise, gauge_levels)
+    capture, scene_sig, gauge_sig = setup.capture, setup.scene_sig, setup.gauge_sig
+    model, min_norm, usable_gauge, said = (setup.model, setup.min_norm, setup.usable_gauge,
+                                           setup.said)
+    t_signatures = setup.seconds
 
-    matches = _match(capture, mask, options, progress)
+    matches = _match(capture, mask, options, progress, model_scale)
     matched = matches.row >= 0
     solved = matched.copy()
     if options.max_residual is not None:
@@ -428,6 +413,52 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
 
 
 # ---------------------------------------------------------------- steps
+@dataclass(frozen=True)
+class _Setup:
+    """Signatures, noise model and the capture to match (private)."""
+
+    capture: Capture
+    scene_sig: SignatureSet
+    gauge_sig: SignatureSet
+    model: NoiseModel
+    min_norm: float
+    usable_gauge: float
+    said: list
+    seconds: float
+
+
+def _setup(scene, gauge_stack, gauge: Gauge, options: Options, noise, gauge_noise,
+           gauge_levels) -> _Setup:
+    """Signatures of both stacks, the noise model, and the capture to match."""
+    m = scene.shape[0]
+    t0 = time.perf_counter()
+    min_norm = dark_threshold(options.dark_level, m)
+    signature_options = dict(band=options.band, colourspace=options.colourspace,
+                             min_norm=min_norm, clip_level=options.clip_level)
+    scene_sig = compute_signatures(scene, options.mode, **signature_options)
+    if gauge_levels is not None:
+        signature_options.update(clip_level=gauge_levels[0],
+                                 min_norm=dark_threshold(gauge_levels[1], m))
+    gauge_sig = compute_signatures(gauge_stack, options.mode, **signature_options)
+    usable_gauge = float((gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum())
+    said = []
+    if usable_gauge < GAUGE_USABLE_WARNING:
+        said.append(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
+                    "(clipped, too dark or invalid): check the gauge's exposure")
+        warnings.warn(said[-1], GaugeWarning, stacklevel=3)
+    gauge_model = _noise_model(gauge_stack, gauge, gauge_sig, options, gauge_noise or noise)
+    model = dataclasses.replace(noise or gauge_model, read=gauge_model.read,
+                                gain=gauge_model.gain, estimated=gauge_model.estimated)
+    capture = Capture(
+        scene_ov=scene_sig.ov, scene_valid=scene_sig.band_valid,
+        gauge_ov=gauge_sig.ov, gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
+        gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
+        gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
+        scene_invalid=scene_sig.band_invalid_value.any(axis=-1))
+    return _Setup(capture, scene_sig, gauge_sig, model, min_norm, usable_gauge, said,
+                  time.perf_counter() - t0)
+
+
 def _check_inputs(scene, gauge_stack, gauge: Gauge, mask, mode: str):
     """Checked float32 stacks and a boolean mask, or an InputError saying what is wrong."""
     scene = check_stack(scene, "scene")
@@ -479,8 +510,8 @@ class _Matches:
     seconds_lookup: float
 
 
-def _match(capture: Capture, mask: np.ndarray, options: Options,
-           progress: bool) -> _Matches:
+def _match(capture: Capture, mask: np.ndarray, options: Options, progress: bool,
+           model_scale: float | None = None) -> _Matches:
     """Match every masked pixel: one table per (bands, weights) group, then light subsets.
 
     Pixels with every band usable are matched on the full signature, the
@@ -491,6 +522,36 @@ def _match(capture: Capture, mask: np.ndarray, options: Options,
     ``light_subsets``, pixels left far outside the noise are re-matched
     without their most deviant light (:func:`_light_subsets`).
     """
+    state = _first_match(capture, mask, options, progress)
+    matched = state.row >= 0
+    if model_scale is None:
+        model_scale = measured_model_scale(state.quality[matched])
+    state.quality[matched] /= model_scale
+    if options.light_subsets and capture.images >= MIN_LIGHTS + 1:
+        _light_subsets(capture, state, options, model_scale)
+    return state.result(model_scale)
+
+
+def _group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of a (P, k) integer array and each row's group index.
+
+    What ``np.unique(rows, axis=0, return_inverse=True)`` returns (groups in
+    lexicographic order), by one 1-D unique per column: 10 times faster than
+    sorting whole rows.
+    """
+    group = np.zeros(len(rows), dtype=np.int64)
+    for column in rows.T:
+        _, value = np.unique(column, return_inverse=True)
+        _, group = np.unique(group * (int(value.max(initial=0)) + 1) + value,
+                             return_inverse=True)
+    _, first = np.unique(group, return_index=True)
+    return rows[first], group.ravel()
+
+
+def _first_match(capture: Capture, mask: np.ndarray, options: Options,
+                 progress: bool) -> "_MatchState":
+    """Every masked pixel's match on its usable bands, before light subsets; the
+    residuals are not yet divided by the model scale."""
     from tqdm.auto import tqdm
 
     h, w = mask.shape
@@ -533,30 +594,18 @@ def _match(capture: Capture, mask: np.ndarray, options: Options,
             state.record(gy, gx, result, bands, keys[g, 1], lights_dropped)
             state.dropped[gy, gx] = keys[g, 0]
             state.brighter[gy, gx] = keys[g, 0]  # clipped: brighter than recorded
-    matched = state.row >= 0
-    model_scale = 1.0
-    if matched.any():
-        model_scale = float(np.sqrt(max(1.0, np.median(state.quality[matched] ** 2))))
-    state.quality[matched] /= model_scale
-    if options.light_subsets and m >= MIN_LIGHTS + 1:
-        _light_subsets(capture, state, options, model_scale)
-    return state.result(model_scale)
+    return state
 
 
-def _group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of a (P, k) integer array and each row's group index.
+def measured_model_scale(residuals: np.ndarray) -> float:
+    """The model scale of first-pass residuals: their RMS median, when above 1.
 
-    What ``np.unique(rows, axis=0, return_inverse=True)`` returns (groups in
-    lexicographic order), by one 1-D unique per column: 10 times faster than
-    sorting whole rows.
+    The BRDF and light mismatch every pixel shares; 1 when the noise model
+    explains the median pixel.
     """
-    group = np.zeros(len(rows), dtype=np.int64)
-    for column in rows.T:
-        _, value = np.unique(column, return_inverse=True)
-        _, group = np.unique(group * (int(value.max(initial=0)) + 1) + value,
-                             return_inverse=True)
-    _, first = np.unique(group, return_index=True)
-    return rows[first], group.ravel()
+    if residuals.size == 0:
+        return 1.0
+    return float(np.sqrt(max(1.0, np.median(residuals.astype(np.float32) ** 2))))
 
 
 def _drop_clipped_lights(capture: Capture, ys, xs, valid, levels, options: Options):
