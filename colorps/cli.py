@@ -189,6 +189,13 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--max-input-gib", type=_positive_float, default=_DEFAULTS.max_input_gib,
                      metavar="G", help="refuse a stack that would take more than G GiB "
                                        "decoded (checked from the headers, before decoding)")
+    rec.add_argument("--tile", type=_positive_int, default=_DEFAULTS.tile, metavar="ROWS",
+                     help="process the scene in bands of ROWS rows read from the files when "
+                          "needed (same results; bounded memory for the matching)")
+    rec.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run the tiles on a Dask cluster: a scheduler address "
+                          "(tcp://host:8786) or 'local' for a local cluster; needs "
+                          "pip install 'colorps[dask]' (default: tiles run in this process)")
     rec.add_argument("--no-height", dest="height", action="store_false",
                      help="skip the height map, relief and overview pictures")
     rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
@@ -283,7 +290,7 @@ def _run(args, previous_sigterm) -> int:
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
                 mask_path=args.mask, options=options, lights=args.lights,
                 light_intensities=args.light_intensities, virtual_radius=args.virtual_radius,
-                overwrite=args.overwrite, progress=not args.quiet)
+                overwrite=args.overwrite, progress=not args.quiet, scheduler=args.scheduler)
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s.solved} of {s.pixels} pixels "

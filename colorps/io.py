@@ -247,7 +247,8 @@ def srgb_encode(values) -> np.ndarray:
     return np.clip(out, 0.0, 1.0)
 
 
-def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]]:
+def read_image(path, encoding: Encoding = "auto", *,
+               rows: tuple[int, int] | None = None) -> tuple[np.ndarray, list[str]]:
     """Read one image as linear float32.
 
     Parameters
@@ -256,6 +257,10 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
     encoding : {"auto", "linear", "srgb"}, optional
         How stored values map to linear light. "auto": integer formats are
         sRGB-encoded, floating-point formats (EXR, HDR, float TIFF) are linear.
+    rows : (start, stop), optional
+        Read only these rows (scanlines ``start`` to ``stop - 1``): OpenImageIO
+        decodes little more than them, so a tile of a large image costs its
+        own size in memory.
 
     Returns
     -------
@@ -275,7 +280,16 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
     try:
         spec = inp.spec()
         file_format = inp.format_name()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        height = spec.height
+        if rows is None:
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        else:
+            start, stop = rows
+            if not 0 <= start < stop <= spec.height:
+                raise InputError(f"{path}: rows {start}..{stop} outside its {spec.height}")
+            pixels = inp.read_scanlines(0, 0, spec.y + start, spec.y + stop, 0, 0,
+                                        spec.nchannels, "float")
+            height = stop - start
         problem = inp.geterror().strip()
     finally:
         inp.close()
@@ -284,7 +298,7 @@ def read_image(path, encoding: Encoding = "auto") -> tuple[np.ndarray, list[str]
     if file_format == "jpeg":
         warnings.warn(f"{path}: JPEG is lossy 8-bit; expect noisier normals than from "
                       "raw, 16-bit TIFF or EXR", LossyInputWarning, stacklevel=2)
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(height, spec.width, -1)
     names = list(spec.channelnames)
     keep = [k for k in range(spec.nchannels) if k != spec.alpha_channel]
     pixels = pixels[..., keep]
@@ -314,9 +328,11 @@ def read_mask(path, shape: tuple[int, int]) -> np.ndarray:
 
 
 def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "stack",
-               progress: bool = False,
-               max_bytes: float | None = None) -> tuple[np.ndarray, list[str]]:
+               progress: bool = False, max_bytes: float | None = None,
+               rows: tuple[int, int] | None = None) -> tuple[np.ndarray, list[str]]:
     """Read images that share size, channels and pixel type into a (m, H, W, c) stack.
+
+    ``rows`` = (start, stop) reads only those rows of each image (a tile).
 
     All headers are checked first (:func:`check_stack_files`), so a file that
     does not fit is refused before any pixel is decoded.
@@ -336,7 +352,7 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
     first, names = None, None
     images = []
     for path in tqdm(paths, desc=f"reading {name}", disable=not progress, leave=False):
-        image, channel_names = read_image(path, encoding)
+        image, channel_names = read_image(path, encoding, rows=rows)
         if first is None:
             first, names = path, channel_names
         elif image.shape != images[0].shape:

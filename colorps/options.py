@@ -103,6 +103,11 @@ class Options:
     max_input_gib : float
         Files only: refuse a stack whose decoded pixels (float32) would take
         more than this many GiB, before decoding any (headers are read first).
+        A tiled run checks one tile against it.
+    tile : int or None
+        Files only: process the scene in bands of this many rows, each read
+        from the files when needed (:mod:`colorps.tiles`); the same maps as an
+        untiled run. None: the whole scene at once.
 
     Examples
     --------
@@ -130,6 +135,7 @@ class Options:
     height: bool = True
     mesh: Literal["ply", "obj", "both"] | None = None
     max_input_gib: float = 8.0
+    tile: int | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -171,6 +177,9 @@ class Options:
                              f"got {self.encoding!r}")
         if self.mesh not in _MESHES:
             raise InputError(f"mesh: expected 'ply', 'obj', 'both' or None, got {self.mesh!r}")
+        if self.tile is not None and (isinstance(self.tile, bool) or
+                                      not isinstance(self.tile, int) or self.tile < 1):
+            raise InputError(f"tile: expected a number of rows >= 1 or None, got {self.tile!r}")
         if not _is_positive(self.max_input_gib):
             raise InputError(f"max_input_gib: expected a value > 0, got {self.max_input_gib!r}")
         if self.mesh is not None and not self.height:

@@ -8,6 +8,7 @@ write the outputs (:mod:`colorps.outputs`). Option values arrive converted
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Literal, Sequence
 
@@ -25,6 +26,8 @@ __all__ = ["reconstruct_files", "integrate_file"]
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
 UNIT_TOLERANCE = 0.01
 MAX_NON_UNIT_FRACTION = 0.01
+#: Seconds to wait for a Dask scheduler given by address.
+SCHEDULER_TIMEOUT = 10
 
 
 def reconstruct_files(scene_patterns: str | Sequence[str],
@@ -32,7 +35,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                       sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
                       gauge_albedo=DEFAULT_ALBEDO, mask_path=None, options: Options | None = None,
                       lights=None, light_intensities=None, virtual_radius: float = 100.0,
-                      overwrite: bool = False, progress: bool = True) -> Reconstruction:
+                      overwrite: bool = False, progress: bool = True,
+                      scheduler=None) -> Reconstruction:
     """Read scene and gauge stacks, reconstruct, and write the output folder.
 
     Parameters
@@ -60,6 +64,10 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         of ``virtual_radius`` pixels).
     progress : bool, optional
         Progress bars on reading and matching.
+    scheduler : str or dask.distributed.Client, optional
+        Run the scene's tiles (``options.tile``, default 256 rows when a
+        scheduler is given) on a Dask cluster: a client, a scheduler address,
+        or "local" for a local cluster started for this run.
 
     Returns
     -------
@@ -70,10 +78,11 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     from .lights import read_lights
     from .noise import NoiseModel, estimate_noise
     from .integrate import integrate, weights_from_quality
-    from .io import (check_stack_files, expand_paths, input_levels, noise_base, read_mask,
-                     read_stack)
+    from .io import (check_stack_files, expand_paths, input_levels, noise_base, read_image,
+                     read_mask, read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
+    from .tiles import DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, tile_rows
 
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
@@ -82,7 +91,23 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     scene_paths = expand_paths(scene_patterns, name="scene")
     # Every header first: sizes, channels, pixel types and memory, before any pixel.
     limit = options.max_input_gib * 2 ** 30
-    scene_info = check_stack_files(scene_paths, name="scene", max_bytes=limit)[0]
+    if scheduler is not None and options.tile is None:
+        options = options.replace(tile=DEFAULT_TILE_ROWS)
+    tiled = options.tile is not None
+    scene_info = check_stack_files(scene_paths, name="scene",
+                                   max_bytes=None if tiled else limit)[0]
+    if tiled:
+        # One tile's stack is what is held at a time.
+        tile_bytes = 4 * len(scene_paths) * scene_info.channels * scene_info.width * \
+            min(options.tile, scene_info.height)
+        if tile_bytes > limit:
+            raise InputError(f"{scene_paths[0]}: a tile of {options.tile} rows of "
+                             f"{len(scene_paths)} images takes {tile_bytes / 2 ** 30:.1f} "
+                             f"GiB, more than --max-input-gib {options.max_input_gib:g}; "
+                             "use fewer rows (--tile)")
+        if lights is not None and "auto" in (options.read_noise, options.gain):
+            raise InputError("--tile with --lights needs --read-noise and --gain: the noise "
+                             "of a virtual-gauge run is fitted to the whole scene at once")
     if lights is not None:
         light_set = read_lights(lights, light_intensities, images=len(scene_paths))
         gauge_paths = []
@@ -100,7 +125,14 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         mask = read_mask(mask_path, (scene_info.height, scene_info.width))
         if not mask.any():
             raise InputError(f"{mask_path}: the mask selects no pixel (non-zero = solve)")
-    scene, names = read_stack(scene_paths, options.encoding, name="scene", progress=progress)
+    if tiled:
+        scene = StackFiles(tuple(scene_paths), (len(scene_paths), scene_info.height,
+                                                scene_info.width, scene_info.channels),
+                           options.encoding)
+        names = read_image(scene_paths[0], options.encoding, rows=(0, 1))[1]
+    else:
+        scene, names = read_stack(scene_paths, options.encoding, name="scene",
+                                  progress=progress)
     scene_noise = noise_base(scene_info, options.encoding)
     requested = options  # "auto" levels resolve per stack, from its own files
     options = options.with_levels(*input_levels(scene_info, options.encoding))
@@ -127,10 +159,19 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         found = find_sphere(gauge_stack) if sphere == "auto" else tuple(sphere)
         gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
 
-    result = reconstruct(scene, gauge_stack, gauge, options, mask=mask, noise=scene_noise,
-                         gauge_noise=gauge_noise,
-                         gauge_levels=(gauge_levels.clip_level, gauge_levels.dark_level),
-                         progress=progress)
+    levels = (gauge_levels.clip_level, gauge_levels.dark_level)
+    if tiled:
+        with _dask_client(scheduler) as client:
+            result = reconstruct_tiled(scene, gauge_stack, gauge, options, tile=options.tile,
+                                       mask=mask, noise=scene_noise, gauge_noise=gauge_noise,
+                                       gauge_levels=levels, client=client, progress=progress)
+        preview = np.concatenate([scene[:, a:b].mean(axis=0)
+                                  for a, b in tile_rows(scene.shape[1], options.tile)])
+    else:
+        result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
+                             noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,
+                             progress=progress)
+        preview = scene.mean(axis=0)
     _check_solved(result, scene_paths, gauge_paths, mask_path)
     if options.height:
         t0 = time.perf_counter()
@@ -150,9 +191,31 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
                           dark_level=gauge_levels.dark_level),
     )
-    save_reconstruction(result, out, channel_names=names, scene_preview=scene.mean(axis=0),
+    save_reconstruction(result, out, channel_names=names, scene_preview=preview,
                         report=report, mesh=options.mesh_kinds, overwrite=overwrite)
     return result
+
+
+@contextlib.contextmanager
+def _dask_client(scheduler):
+    """None (no scheduler), the given client, or one for an address / "local"."""
+    if scheduler is None or not isinstance(scheduler, str):
+        yield scheduler
+        return
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("--scheduler needs Dask: pip install 'colorps[dask]'") from None
+    if scheduler == "local":
+        with LocalCluster(dashboard_address=None) as cluster, Client(cluster) as client:
+            yield client
+        return
+    try:
+        client = Client(scheduler, timeout=SCHEDULER_TIMEOUT)
+    except (OSError, TimeoutError) as error:
+        raise InputError(f"--scheduler {scheduler}: cannot connect ({error})") from None
+    with client:
+        yield client
 
 
 def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:

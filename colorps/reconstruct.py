@@ -367,13 +367,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     albedo[solved] = _albedo(scene, gauge_stack, solved, matches, offset, gauge_albedo,
                              options.clip_level)
     reason = _reasons(scene_sig, mask, solved, matched, matches.dropped)
-    n_masked = int(mask.sum())
-    if n_masked and 0 < solved.sum() < LOW_SOLVED_FRACTION * n_masked:
-        counts = reason_counts(reason[mask & ~solved])
-        worst = max(counts, key=counts.get)
-        said.append(f"only {solved.sum() / n_masked:.0%} of the {n_masked} masked pixels "
-                    f"were solved (mostly '{worst}': {counts[worst]} pixels)")
-        warnings.warn(said[-1], LowSolvedWarning, stacklevel=2)
+    message = low_solved_message(reason, mask, solved)
+    if message:
+        said.append(message)
+        warnings.warn(message, LowSolvedWarning, stacklevel=2)
 
     n_bands = scene_sig.bands
     full = (1 << n_bands) - 1
@@ -410,6 +407,42 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     return Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
                           matches.bands_used, np.where(solved, matches.dropped, np.uint64(0)),
                           stats)
+
+
+def low_solved_message(reason: np.ndarray, mask: np.ndarray, solved: np.ndarray
+                       ) -> str | None:
+    """What to warn when under LOW_SOLVED_FRACTION of the mask was solved (else None)."""
+    n_masked = int(mask.sum())
+    if not (n_masked and 0 < solved.sum() < LOW_SOLVED_FRACTION * n_masked):
+        return None
+    counts = reason_counts(reason[mask & ~solved])
+    worst = max(counts, key=counts.get)
+    return (f"only {solved.sum() / n_masked:.0%} of the {n_masked} masked pixels were "
+            f"solved (mostly '{worst}': {counts[worst]} pixels)")
+
+
+def first_residuals(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
+                    mask=None, noise: NoiseModel | None = None,
+                    gauge_noise: NoiseModel | None = None,
+                    gauge_levels: tuple[float | None, float] | None = None) -> np.ndarray:
+    """Residuals of the first matches of a piece of a scene, before any scaling.
+
+    :func:`reconstruct` divides residuals by the model scale of its scene
+    (:func:`measured_model_scale` of these); a capture processed in pieces
+    gathers the pieces' first residuals, measures the scale once and hands it
+    to each piece's ``reconstruct(..., model_scale=)``. Arguments as for
+    :func:`reconstruct`.
+
+    Returns
+    -------
+    (P,) ndarray of float32
+        One per matched pixel, in no particular order.
+    """
+    options = (options or Options()).with_levels(None, FLOAT_DARK_LEVEL)
+    scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
+    setup = _setup(scene, gauge_stack, gauge, options, noise, gauge_noise, gauge_levels)
+    state = _first_match(setup.capture, mask, options, progress=False)
+    return state.quality[state.row >= 0]
 
 
 # ---------------------------------------------------------------- steps
@@ -706,7 +739,7 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
         candidates = (state.row >= 0) & (state.quality > SUBSET_TRIGGER) & \
             (left - 1 >= MIN_LIGHTS)
         if not candidates.any():
-            return
+            break  # still check the gain and classify what earlier rounds dropped
         ys, xs = _tile_order(candidates)
         best_q = state.quality[ys, xs].copy()
         best_light = np.full(len(ys), -1)

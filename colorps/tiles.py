@@ -1,0 +1,264 @@
+"""Captures in tiles: bands of rows reconstructed apart, in this process or on Dask.
+
+A tile is a band of whole rows of the scene. Every scene pixel's result
+depends on the gauge, the noise model and the capture's **model scale** only
+(:mod:`colorps.residuals`), so tiles can be solved independently once the
+scale is known. A tiled run therefore has two passes:
+
+1. each tile's first residuals (:func:`colorps.reconstruct.first_residuals`),
+   gathered into the capture's model scale
+   (:func:`colorps.reconstruct.measured_model_scale`);
+2. each tile's :func:`colorps.reconstruct` with that scale.
+
+The normals, albedo, quality, uncertainty and reason maps are then the same
+as those of one untiled run (tests check it); the statistics are combined.
+Only one tile's stack is in memory per worker at a time when the scene is a
+:class:`StackFiles` (read row by row from the files).
+
+On a cluster, pass a ``dask.distributed.Client``: the gauge is scattered to
+every worker once, and tiles run as tasks (``pip install "colorps[dask]"``).
+
+One limit of the equivalence: a round of light subsets builds at most
+``MAX_SUBSET_GROUPS`` tables (the largest groups of its pixels); a tile whose
+pixels need other tables than the whole image's largest ones may try them.
+Below that many distinct (dropped lights, bands) combinations per round, which
+covers captures with up to about 16 lights, results are identical.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import InputError
+from .gauge import Gauge
+from .noise import NoiseModel
+from .options import Options
+from .reconstruct import (LowSolvedWarning, MatchGroup, Reconstruction, Timings,
+                          first_residuals, low_solved_message, measured_model_scale,
+                          reconstruct)
+
+__all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "DEFAULT_TILE_ROWS"]
+
+#: Rows per tile when none are given: about 64 MiB of float32 per tile for 8 RGB
+#: images of 4096 columns.
+DEFAULT_TILE_ROWS = 256
+
+
+@dataclass(frozen=True)
+class StackFiles:
+    """A scene stack left in its files, read a band of rows at a time.
+
+    ``stack[:, start:stop]`` (the only indexing a tiled run needs) reads those
+    rows of every image (:func:`colorps.io.read_stack` with ``rows``); it is
+    small to send to a Dask worker, which reads its own tiles.
+    """
+
+    paths: tuple[Path, ...]
+    shape: tuple[int, int, int, int]  # (m, H, W, c)
+    encoding: str = "auto"
+    name: str = "scene"
+
+    def __getitem__(self, key) -> np.ndarray:
+        from .io import read_stack
+
+        if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None)
+                and isinstance(key[1], slice) and key[1].step in (None, 1)):
+            raise TypeError("StackFiles supports stack[:, start:stop] only")
+        start, stop, _ = key[1].indices(self.shape[1])
+        return read_stack(self.paths, self.encoding, name=self.name, rows=(start, stop))[0]
+
+
+def tile_rows(height: int, tile: int) -> list[tuple[int, int]]:
+    """(start, stop) row ranges of ``tile`` rows covering ``height`` rows."""
+    if tile < 1:
+        raise InputError(f"tile: expected at least 1 row, got {tile}")
+    return [(start, min(start + tile, height)) for start in range(0, height, tile)]
+
+
+def _first_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
+                gauge_levels):
+    """A tile's first residuals; ``scene[:, rows]`` is the tile, ``tile_mask`` its mask."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the whole run reports, once
+        return first_residuals(scene[:, rows[0]:rows[1]], gauge_stack, gauge, options,
+                               mask=tile_mask, noise=noise, gauge_noise=gauge_noise,
+                               gauge_levels=gauge_levels)
+
+
+def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
+               gauge_levels, model_scale):
+    """A tile's reconstruction, and the warnings it raised (but low-solved ones)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = reconstruct(scene[:, rows[0]:rows[1]], gauge_stack, gauge, options,
+                             mask=tile_mask, noise=noise, gauge_noise=gauge_noise,
+                             gauge_levels=gauge_levels, model_scale=model_scale)
+    said = [(w.category, str(w.message)) for w in caught
+            if not issubclass(w.category, LowSolvedWarning)]
+    return result, said
+
+
+def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
+                      tile: int = DEFAULT_TILE_ROWS, mask=None,
+                      noise: NoiseModel | None = None, gauge_noise: NoiseModel | None = None,
+                      gauge_levels: tuple[float | None, float] | None = None,
+                      client=None, progress: bool = False) -> Reconstruction:
+    """:func:`colorps.reconstruct`, a band of ``tile`` rows at a time.
+
+    Parameters
+    ----------
+    scene : (m, H, W, c) ndarray or StackFiles
+        The scene stack, in memory or left in its files.
+    tile : int, optional
+        Rows per tile.
+    client : dask.distributed.Client, optional
+        Run the tiles as tasks on this cluster (the gauge is scattered to every
+        worker once). Default: one after the other in this process.
+    progress : bool, optional
+        A progress bar over tiles (Dask's own with a client).
+    gauge_stack, gauge, options, mask, noise, gauge_noise, gauge_levels
+        As for :func:`colorps.reconstruct`.
+
+    Returns
+    -------
+    Reconstruction
+        The same maps as an untiled run; statistics combined over the tiles.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from colorps import Gauge, reconstruct, synth
+    >>> from colorps.tiles import reconstruct_tiled
+    >>> lights = synth.ring_lights(6, 45)
+    >>> scene = synth.smiley_surface(64)
+    >>> ball = synth.sphere_surface(101, 48)
+    >>> stack, gauge_stack = synth.render(scene, lights), synth.render(ball, lights)
+    >>> gauge = Gauge.from_sphere((101, 101), 50, 50, 48)
+    >>> whole = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    >>> tiled = reconstruct_tiled(stack, gauge_stack, gauge, tile=16, mask=scene.mask)
+    >>> bool(np.array_equal(whole.normals, tiled.normals, equal_nan=True))
+    True
+    """
+    t_start = time.perf_counter()
+    options = options or Options()
+    m, h, w, c = scene.shape
+    mask = None if mask is None else np.asarray(mask, dtype=bool)
+    if mask is not None and mask.shape != (h, w):
+        raise InputError(f"mask: shape {mask.shape} differs from the scene's {(h, w)}")
+    ranges = tile_rows(h, tile)
+    masks = [None if mask is None else mask[a:b] for a, b in ranges]
+    shared = dict(options=options, noise=noise, gauge_noise=gauge_noise,
+                  gauge_levels=gauge_levels)
+    run = _in_process if client is None else _on_dask
+    residuals = run(client, _first_task, scene, ranges, masks, gauge_stack, gauge, shared,
+                    progress, "first matches")
+    model_scale = measured_model_scale(np.concatenate(residuals))
+    tiles = run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
+                dict(shared, model_scale=model_scale), progress, "tiles")
+    results = [result for result, _ in tiles]
+    said = list(dict.fromkeys(s for _, caught in tiles for s in caught))
+    return _stitch(results, said, mask if mask is not None else np.ones((h, w), bool),
+                   time.perf_counter() - t_start)
+
+
+def _in_process(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress,
+                what):
+    from tqdm.auto import tqdm
+
+    return [task(scene, rows, tile_mask, gauge_stack, gauge, **shared)
+            for rows, tile_mask in tqdm(list(zip(ranges, masks)), desc=what,
+                                        disable=not progress, leave=False)]
+
+
+def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress, what):
+    from dask.distributed import progress as dask_progress
+
+    gauge_stack, gauge = client.scatter([np.ascontiguousarray(gauge_stack), gauge],
+                                        broadcast=True, hash=False)
+    futures = []
+    for rows, tile_mask in zip(ranges, masks):
+        piece, piece_rows = scene, rows  # files: the worker reads its own rows
+        if isinstance(scene, np.ndarray):  # in memory: each tile is sent on its own
+            piece, piece_rows = scene[:, rows[0]:rows[1]], (0, rows[1] - rows[0])
+        futures.append(client.submit(task, piece, piece_rows, tile_mask, gauge_stack, gauge,
+                                     **shared, pure=False))
+    if progress:
+        dask_progress(futures)
+    return client.gather(futures)
+
+
+def _stitch(results: Sequence[Reconstruction], said, mask, seconds) -> Reconstruction:
+    """One Reconstruction from the tiles' (top to bottom), statistics combined."""
+    def rows(name):
+        return np.concatenate([getattr(r, name) for r in results], axis=0)
+
+    normals, albedo, quality, uncertainty = (rows(n) for n in
+                                             ("normals", "albedo", "quality", "uncertainty"))
+    solved, reason, bands_used, dropped = (rows(n) for n in
+                                           ("solved", "reason", "bands_used", "dropped_lights"))
+    first = results[0].stats
+    matched = np.isfinite(quality)
+    n_matched = [int(np.isfinite(r.quality).sum()) for r in results]
+
+    def total(name):
+        return sum(getattr(r.stats, name) for r in results)
+
+    def counts(name):  # summed dicts, keys in the first tile's order, zeros kept
+        out = {}
+        for r in results:
+            for key, value in getattr(r.stats, name).items():
+                out[key] = out.get(key, 0) + int(value)
+        return out
+
+    def per_lookup(name):
+        weight = sum(n_matched)
+        return (sum(getattr(r.stats, name) * n for r, n in zip(results, n_matched)) / weight
+                if weight else 0.0)
+
+    groups = Counter()
+    for r in results:
+        for g in r.stats.grids:
+            groups[dataclasses.replace(g, pixels=0)] += g.pixels
+    grids = tuple(sorted((dataclasses.replace(g, pixels=n) for g, n in groups.items()),
+                         key=lambda g: -g.pixels))
+    message = low_solved_message(reason, mask, solved)
+    warnings_said = [text for _, text in said]
+    for category, text in said:
+        warnings.warn(text, category, stacklevel=3)
+    if message:
+        warnings_said.append(message)
+        warnings.warn(message, LowSolvedWarning, stacklevel=3)
+    q = quality[matched]
+    refined = uncertainty[solved]
+    refined = refined[np.isfinite(refined)]
+    timing = Timings(**{f.name: sum(getattr(r.stats.seconds, f.name) or 0.0 for r in results)
+                        for f in dataclasses.fields(Timings)})
+    stats = dataclasses.replace(
+        first, grid_n=next((r.stats.grid_n for r in results if r.stats.grid_n), None),
+        grids=grids, buckets_per_lookup=per_lookup("buckets_per_lookup"),
+        tests_per_lookup=per_lookup("tests_per_lookup"), pixels=total("pixels"),
+        solved=total("solved"), solved_from_band_subset=total("solved_from_band_subset"),
+        solved_from_light_subset=total("solved_from_light_subset"),
+        lights_dropped_per_pixel=counts("lights_dropped_per_pixel"),
+        dropped_per_light=[dict(light=i, darker=sum(r.stats.dropped_per_light[i]["darker"]
+                                                    for r in results),
+                                brighter=sum(r.stats.dropped_per_light[i]["brighter"]
+                                             for r in results))
+                           for i in range(first.images)],
+        pixels_by_reason=counts("pixels_by_reason"),
+        residual_median=float(np.median(q)) if q.size else None,
+        residual_p95=float(np.percentile(q, 95)) if q.size else None,
+        warnings=tuple(warnings_said), refined=int(refined.size),
+        uncertainty_median=float(np.median(refined)) if refined.size else None,
+        uncertainty_p95=float(np.percentile(refined, 95)) if refined.size else None,
+        seconds=dataclasses.replace(timing, total=seconds, integration=None))
+    return Reconstruction(normals, albedo, quality, uncertainty, solved, reason, bands_used,
+                          dropped, stats)

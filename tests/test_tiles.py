@@ -1,0 +1,93 @@
+"""Tiled and Dask runs give the maps of one untiled run."""
+
+import numpy as np
+import pytest
+
+from colorps import Gauge, reconstruct, synth
+from colorps.errors import InputError
+from colorps.io import write_image
+from colorps.tiles import StackFiles, reconstruct_tiled, tile_rows
+
+MAPS = ("normals", "albedo", "quality", "uncertainty", "solved", "reason", "bands_used",
+        "dropped_lights")
+
+
+@pytest.fixture(scope="module")
+def messy():
+    """Oren-Nayar scene against a Lambertian gauge (model scale > 1), noise, cast
+    shadows, a highlight and clipped colours: every step of a run has work."""
+    hue = 0.5 + 0.5 * np.cos(2 * np.pi * np.arange(8)[:, None] / 8 - [0.0, 2.1, 4.2])
+    lights = synth.ring_lights(8, 55, 0.2 + 0.8 * hue)
+    surface = synth.smiley_surface(72, relief=0.2)
+    scene = synth.render(surface, lights, brdf="oren-nayar", noise=0.004, seed=1,
+                         cast_shadows=True, gloss=0.4)
+    scene = np.minimum(scene * 1.6, 1.0)  # saturated colours clip in some images
+    ball = synth.sphere_surface(91, 42)
+    gauge_stack = synth.render(ball, lights, noise=0.004, seed=2)
+    gauge = Gauge.from_sphere((91, 91), 45, 45, 42)
+    mask = surface.mask.copy()
+    mask[30:34, :] = False  # a tile border inside and outside the mask
+    return scene.astype(np.float32), gauge_stack, gauge, mask
+
+
+def assert_same(whole, tiled):
+    for name in MAPS:
+        assert np.array_equal(getattr(whole, name), getattr(tiled, name), equal_nan=True), name
+    for name in ("solved", "pixels", "model_scale", "pixels_by_reason",
+                 "solved_from_light_subset", "lights_dropped_per_pixel", "dropped_per_light",
+                 "residual_median", "refined", "uncertainty_median"):
+        assert getattr(whole.stats, name) == getattr(tiled.stats, name), name
+
+
+def test_tiles_give_the_untiled_maps_and_statistics(messy):
+    scene, gauge_stack, gauge, mask = messy
+    whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
+    assert whole.stats.model_scale > 1.05  # a shared scale matters here
+    assert whole.stats.solved_from_light_subset > 0
+    assert (whole.reason[mask] != 0).any()  # some pixels unsolved, with reasons
+    for tile in (7, 30, 200):
+        assert_same(whole, reconstruct_tiled(scene, gauge_stack, gauge, tile=tile, mask=mask))
+
+
+def test_each_tile_alone_would_scale_differently(messy):
+    """Without the shared model scale, tiles would not reproduce the whole run."""
+    scene, gauge_stack, gauge, mask = messy
+    whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
+    top = reconstruct(scene[:, :20], gauge_stack, gauge, mask=mask[:20])
+    assert top.stats.model_scale != whole.stats.model_scale
+
+
+def test_tiles_read_from_files(messy, tmp_path):
+    scene, gauge_stack, gauge, mask = messy
+    paths = [write_image(tmp_path / f"s{k}.exr", image) for k, image in enumerate(scene)]
+    files = StackFiles(tuple(paths), scene.shape)
+    assert np.array_equal(files[:, 10:25], scene[:, 10:25])
+    whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
+    assert_same(whole, reconstruct_tiled(files, gauge_stack, gauge, tile=25, mask=mask))
+
+
+def test_tile_arguments_are_checked(messy):
+    scene, gauge_stack, gauge, mask = messy
+    assert tile_rows(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    with pytest.raises(InputError, match="tile"):
+        reconstruct_tiled(scene, gauge_stack, gauge, tile=0)
+    with pytest.raises(InputError, match="mask"):
+        reconstruct_tiled(scene, gauge_stack, gauge, mask=mask[1:])
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_gives_the_untiled_maps(messy, tmp_path):
+    distributed = pytest.importorskip("dask.distributed")  # in the test extra
+    scene, gauge_stack, gauge, mask = messy
+    whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
+    paths = [write_image(tmp_path / f"s{k}.exr", image) for k, image in enumerate(scene)]
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        in_memory = reconstruct_tiled(scene, gauge_stack, gauge, tile=20, mask=mask,
+                                      client=client)
+        from_files = reconstruct_tiled(StackFiles(tuple(paths), scene.shape), gauge_stack,
+                                       gauge, tile=20, mask=mask, client=client)
+        assert len(client.scheduler_info()["workers"]) == 2
+    assert_same(whole, in_memory)
+    assert_same(whole, from_files)
