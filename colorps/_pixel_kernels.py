@@ -147,3 +147,37 @@ def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albed
             else:
                 ratio = np.nan
             out[p, k] = ratio * gauge_albedo[k]
+
+
+@njit(cache=True, parallel=True)
+def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
+    """Mean over the last axis of sigma(v)^2 = read^2 + gain v + q(v)^2.
+
+    Parameters
+    ----------
+    values : (N, m) float32
+        Measurements (non-finite or negative ones count as 0).
+    read2, gain : float
+    pixel_kind : int
+        0: float (q = 0), 1: half float (q = one half-float unit / sqrt(12)),
+        2: integer codes (q interpolated in ``table`` at ``levels``).
+    levels, table : (L,) float64
+    out : (N,) float32
+        Written in place.
+    """
+    n, m = values.shape
+    for p in prange(n):
+        total = 0.0
+        for i in range(m):
+            v = np.float64(values[p, i])
+            if not (v > 0.0) or not np.isfinite(v):
+                v = 0.0
+            variance = read2 + gain * v
+            if pixel_kind == 1:
+                ulp = 2.0 ** (np.floor(np.log2(max(v, 2.0 ** -14))) - 10.0)
+                variance += ulp * ulp / 12.0
+            elif pixel_kind == 2:
+                q = np.interp(v, levels, table)
+                variance += q * q
+            total += variance
+        out[p] = total / m

@@ -12,6 +12,11 @@ from .io import srgb_encode
 
 __all__ = ["shaded_relief", "overview", "as_rgb"]
 
+#: The overview's panels are drawn from images subsampled to at most this many
+#: pixels on a side (a panel is 320 pixels wide): drawing a 4096-pixel image
+#: into it only costs time.
+OVERVIEW_SIDE = 640
+
 
 def as_rgb(values) -> np.ndarray:
     """Three display bands: the first three bands, or one band repeated as grey."""
@@ -79,13 +84,19 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    h, w = np.shape(normals)[:2]
+    step = max(1, -(-max(h, w) // OVERVIEW_SIDE))  # ceil
+    pick = (slice(None, None, step), slice(None, None, step))
+    scene_image, normals, albedo = (np.asarray(a)[pick] for a in (scene_image, normals, albedo))
     photo = as_rgb(scene_image)
     peak = np.nanpercentile(photo, 99.5) if np.isfinite(photo).any() else 1.0
     panels = [("scene (mean image)", srgb_encode(photo / (peak if peak > 0 else 1.0))),
               ("normals (n + 1) / 2", np.nan_to_num((np.asarray(normals) + 1) / 2, nan=0.0)),
               ("albedo", srgb_encode(as_rgb(albedo)))]
     if height is not None:
-        panels.append(("shaded relief", shaded_relief(height)))
+        # Slopes per subsampled pixel are step times steeper: shade the same relief.
+        panels.append(("shaded relief", shaded_relief(np.asarray(height)[pick],
+                                                      exaggeration=1.0 / step)))
     fig = Figure(figsize=(3.2 * len(panels), 3.6), dpi=100)
     for k, (name, image) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), k + 1)

@@ -136,6 +136,24 @@ class NoiseModel:
             variance += q * q / np.float32(12.0)
         return np.sqrt(variance)
 
+    def mean_variance(self, values) -> np.ndarray:
+        """Mean of sigma^2 over the last axis: (..., m) measurements -> (...) float32.
+
+        The same as ``(self.sigma(values) ** 2).mean(axis=-1)``, in one
+        compiled pass with no temporaries of the measurements' size.
+        """
+        from ._pixel_kernels import mean_variance
+
+        v = np.asarray(values, dtype=np.float32)
+        flat = np.ascontiguousarray(v.reshape(-1, v.shape[-1]))
+        levels = table = np.zeros(1)
+        if self.pixel_type == "int":
+            levels, table = _quantisation_table(self.top_code, self.encoding)
+        out = np.empty(flat.shape[0], dtype=np.float32)
+        mean_variance(flat, float(self.read) ** 2, float(self.gain),
+                      {"float": 0, "half": 1, "int": 2}[self.pixel_type], levels, table, out)
+        return out.reshape(v.shape[:-1])
+
     def as_dict(self) -> dict:
         return dict(read=self.read, gain=self.gain, pixel_type=self.pixel_type,
                     top_code=self.top_code, encoding=self.encoding, estimated=self.estimated)

@@ -51,8 +51,7 @@ def unit_rows(ov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def band_variance(ov: np.ndarray, model: NoiseModel) -> np.ndarray:
     """Mean measurement variance per band: (..., B, m) OVs -> (..., B)."""
-    sigma = model.sigma(ov)
-    return (sigma * sigma).mean(axis=-1)
+    return model.mean_variance(ov)
 
 
 def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:

@@ -244,3 +244,14 @@ def test_pixel_groups_are_the_distinct_rows():
     expected_keys, expected_group = np.unique(rows, axis=0, return_inverse=True)
     assert np.array_equal(keys, expected_keys)
     assert np.array_equal(group, expected_group.ravel())
+
+
+@pytest.mark.parametrize("model", [
+    NoiseModel(0.002, 0.001, "float"), NoiseModel(0.002, 0.001, "half"),
+    NoiseModel(0.001, 0.0005, "int", 255, "srgb"), NoiseModel(0.0, 0.0, "int", 65535, "linear")])
+def test_mean_variance_is_the_mean_of_sigma_squared(model):
+    rng = np.random.default_rng(2)
+    values = (rng.random((50, 3, 8)) * 1.2 - 0.1).astype(np.float32)
+    values[0, 0, :2] = [np.nan, np.inf]
+    expected = (model.sigma(values).astype(np.float64) ** 2).mean(axis=-1)
+    np.testing.assert_allclose(model.mean_variance(values), expected, rtol=1e-5)

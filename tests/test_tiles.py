@@ -91,3 +91,27 @@ def test_dask_local_cluster_gives_the_untiled_maps(messy, tmp_path):
         assert len(client.scheduler_info()["workers"]) == 2
     assert_same(whole, in_memory)
     assert_same(whole, from_files)
+
+
+def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
+    from colorps import Options
+    from colorps.io import read_image
+    from colorps.pipeline import reconstruct_files
+
+    scene, gauge_stack, gauge, mask = messy
+    for k in range(len(scene)):
+        write_image(tmp_path / f"scene_{k}.exr", scene[k])
+        write_image(tmp_path / f"gauge_{k}.exr", gauge_stack[k])
+    write_image(tmp_path / "mask.png", mask.astype(np.float32), dtype="uint8")
+    args = (str(tmp_path / "scene_*.exr"), str(tmp_path / "gauge_*.exr"), (45, 45, 42))
+    reconstruct_files(*args, tmp_path / "whole", mask_path=tmp_path / "mask.png",
+                      progress=False)
+    reconstruct_files(*args, tmp_path / "tiled", mask_path=tmp_path / "mask.png",
+                      options=Options(tile=16), progress=False)
+    for name in ("normal", "albedo", "quality", "uncertainty", "height"):
+        whole = read_image(tmp_path / "whole" / f"{name}.exr")[0]
+        tiled = read_image(tmp_path / "tiled" / f"{name}.exr")[0]
+        assert np.array_equal(whole, tiled, equal_nan=True), name
+    with pytest.raises(InputError, match="--tile"):
+        reconstruct_files(*args, tmp_path / "huge", options=Options(tile=16, max_input_gib=1e-6),
+                          progress=False)
