@@ -11,7 +11,7 @@ in a fresh process so that start-up and imports count as a user feels them:
   8-bit PNG of the scene's size: the least any tool that reads these files and
   writes a result could do;
 * **colorps**: ``colorps reconstruct --sphere auto --mask ...`` with default
-  options and all default outputs (sizes from ``--tile-at`` on also with
+  options and all default outputs (sizes from ``--tile-at`` on with
   ``--tile``).
 
 It prints a markdown table: wall seconds (best of ``--repeat``), the ratio to
@@ -82,7 +82,6 @@ def main(argv=None) -> None:
     parser.add_argument("--tile-at", type=int, default=4096,
                         help="sizes from this on also run with --tile (default: 4096)")
     parser.add_argument("--tile", type=int, default=1024)
-    parser.add_argument("--memory-limit", default="2GiB")
     args = parser.parse_args(argv)
     colorps = [sys.executable, "-m", "colorps.cli"]
     rows, previous = [], None
@@ -100,8 +99,7 @@ def main(argv=None) -> None:
                                               str(out)], args.repeat)
             runs = [("colorps", [])]
             if size >= args.tile_at:
-                runs = [("colorps --tile", ["--tile", str(args.tile),
-                                            "--memory-limit", args.memory_limit])]
+                runs = [(f"colorps --tile {args.tile}", ["--tile", str(args.tile)])]
             for label, extra in runs:
                 command = colorps + [
                     "reconstruct", "--scene", str(capture / "scene_*.exr"),

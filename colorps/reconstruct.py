@@ -594,7 +594,7 @@ def _first_match(capture: Capture, mask: np.ndarray, options: Options,
     levels = np.zeros(valid.shape, dtype=np.int8)
     if options.band_weights and n_bands > 1:
         ov = capture.scene_ov[ys, xs]
-        norms = np.sqrt((ov.astype(np.float64) ** 2).sum(axis=-1))
+        norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
         levels = weight_levels(norms, band_variance(ov, capture.model), valid)
         kept = valid & (levels > DROP_LEVEL)
         fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
@@ -658,7 +658,7 @@ def _drop_clipped_lights(capture: Capture, ys, xs, valid, levels, options: Optio
     pick = np.flatnonzero(candidates)
     kept = ~_lights_of(unusable[pick], m).T  # (P', m)
     ov = capture.scene_ov[ys[pick], xs[pick]] * kept[:, None, :]
-    norms = np.sqrt((ov.astype(np.float64) ** 2).sum(axis=-1))
+    norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
     bands = norms > capture.min_norm
     enough = bands.sum(axis=-1) * (kept.sum(axis=-1) - 1) >= 2
     pick, bands = pick[enough], bands[enough]
