@@ -15,7 +15,7 @@ from . import __version__
 from .errors import ColorPSError
 from .gauge import DEFAULT_ALBEDO
 from .options import FLOAT_DARK_LEVEL, Options
-from .pipeline import integrate_file, reconstruct_files
+from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
 __all__ = ["main", "build_parser"]
@@ -214,6 +214,16 @@ def build_parser() -> argparse.ArgumentParser:
     integ.add_argument("--mesh", metavar="FILE", help="also write a mesh (.ply or .obj)")
     integ.add_argument("--overwrite", action="store_true", help="replace existing files")
 
+    cal = sub.add_parser("calibrate-lights", formatter_class=_FORMATTER,
+                         help="light directions from the highlight on a mirror sphere")
+    cal.add_argument("images", nargs="+", metavar="IMAGES",
+                     help="mirror-sphere images (globs or paths), one per light, in order")
+    cal.add_argument("--sphere", type=_sphere, required=True, metavar="auto|CX,CY,R",
+                     help="sphere silhouette in pixels, or 'auto' to find it")
+    cal.add_argument("--out", required=True, metavar="FILE",
+                     help="light file to write: .txt, .lp or .json")
+    cal.add_argument("--overwrite", action="store_true", help="replace an existing file")
+
     demo = sub.add_parser("demo", formatter_class=_FORMATTER,
                           help="run the full pipeline on the bundled sample and report "
                                "its accuracy against ground truth")
@@ -305,6 +315,18 @@ def _run(args, previous_sigterm) -> int:
             inside = np.isfinite(z)
             print(f"integrated {inside.sum()} pixels; relief depth "
                   f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")
+        elif args.command == "calibrate-lights":
+            lights, found, sphere = calibrate_lights_files(args.images, args.sphere, args.out,
+                                                           overwrite=args.overwrite)
+            print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
+            print(f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>4s} "
+                  f"{'clip':>4s} {'deg/px':>6s}")
+            for name, f in zip(lights.names, found):
+                x, y, z = f.direction
+                print(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
+                      f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
+                      f"{f.clipped:4d} {f.degrees_per_pixel:6.2f}")
+            print(f"wrote {len(found)} light directions to {args.out}")
         elif args.command == "demo":
             from .sample import run_demo
 

@@ -20,7 +20,7 @@ from .gauge import DEFAULT_ALBEDO
 from .options import Options
 from .reconstruct import Reconstruction
 
-__all__ = ["reconstruct_files", "integrate_file"]
+__all__ = ["reconstruct_files", "integrate_file", "calibrate_lights_files"]
 
 #: A normal map's finite pixels must be unit vectors within this (half-float
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
@@ -291,3 +291,49 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
     height = integrate(normals, mask, weights=weights, method=method)
     save_height(height, out, mesh=mesh, overwrite=overwrite)
     return height
+
+
+def calibrate_lights_files(image_patterns: str | Sequence[str],
+                           sphere: Literal["auto"] | tuple[float, float, float], out, *,
+                           encoding="auto", overwrite: bool = False):
+    """Light directions from mirror-sphere images, written as a light file.
+
+    Parameters
+    ----------
+    image_patterns : str or sequence of str
+        The mirror-sphere images, one per light, in capture order.
+    sphere : "auto" or (cx, cy, r)
+        The sphere's silhouette in pixels, or found with :func:`colorps.find_sphere`
+        on the images (it needs the sphere's disk brighter than the background).
+    out : str or Path
+        ``.txt`` (one "x y z" per line), ``.lp`` (count, then "file x y z") or
+        ``.json``.
+
+    Returns
+    -------
+    (Lights, list of Highlight, (cx, cy, r))
+    """
+    from pathlib import Path
+
+    from .calibrate import calibrate_lights
+    from .errors import OutputError
+    from .gauge import find_sphere
+    from .io import check_stack_files, expand_paths, input_levels, read_stack
+    from .lights import LIGHT_FORMATS, write_lights
+
+    out = Path(out)
+    if out.suffix.lower() not in LIGHT_FORMATS:
+        raise InputError(f"{out}: light files are {', '.join(LIGHT_FORMATS)}")
+    if out.exists() and not overwrite:
+        raise OutputError(f"{out}: already exists; use --overwrite to replace it")
+    if not out.parent.is_dir():
+        raise OutputError(f"{out.parent}: output folder does not exist")
+    paths = expand_paths(image_patterns, name="mirror sphere")
+    info = check_stack_files(paths, name="mirror sphere")[0]
+    stack, _ = read_stack(paths, encoding, name="mirror sphere")
+    found_sphere = find_sphere(stack) if sphere == "auto" else tuple(sphere)
+    clip_level, _ = input_levels(info, encoding)
+    lights, found = calibrate_lights(stack, found_sphere, clip_level=clip_level,
+                                     names=[p.name for p in paths])
+    write_lights(lights, out)
+    return lights, found, found_sphere

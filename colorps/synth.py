@@ -31,7 +31,7 @@ from .geometry import sphere_normals
 __all__ = [
     "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
     "render", "BRDFS", "mixed_lights", "write_synthetic", "shadow_maps", "highlight_maps",
-    "LIGHT_LAYOUTS", "FILE_FORMATS",
+    "LIGHT_LAYOUTS", "FILE_FORMATS", "render_mirror_sphere",
 ]
 
 #: Names of the reflectance models :func:`render` knows.
@@ -207,6 +207,38 @@ def _specular(normals: np.ndarray, light: np.ndarray, gloss: float,
     half = half / np.linalg.norm(half)
     lit = normals @ light > 0
     return np.where(lit, gloss * np.clip(normals @ half, 0.0, 1.0) ** shininess, 0.0)
+
+
+def render_mirror_sphere(surface: SyntheticSurface, lighting: Lighting, *,
+                         spread_deg: float = 1.0, ambient: float = 0.03,
+                         peak: float = 1.0, noise: float = 0.0,
+                         seed: int | None = 0) -> np.ndarray:
+    """Images of a mirror (chrome) surface reflecting each image's lights.
+
+    Each distant light is a small round source: a pixel whose mirror direction
+    r = 2 (n . v) n - v makes the angle theta with it shows
+    ``peak * colour * exp(-theta^2 / (2 spread^2))``, on top of a dim uniform
+    environment ``ambient`` (so the sphere's disk is visible); 0 outside the mask.
+
+    Returns
+    -------
+    (m, H, W, c) ndarray of float32
+        Linear values (not clipped: clip them to mimic saturation).
+    """
+    n = surface.normals
+    reflected = 2.0 * n[..., 2:3] * n - np.array([0.0, 0.0, 1.0])
+    spread = np.radians(spread_deg)
+    rng = np.random.default_rng(seed)
+    images = np.zeros((lighting.images, *surface.mask.shape, lighting.bands))
+    for k in range(lighting.images):
+        images[k] += ambient
+        for direction, colour in zip(lighting.directions[k], lighting.colours[k]):
+            theta = np.arccos(np.clip(reflected @ direction, -1.0, 1.0))
+            images[k] += peak * np.exp(-theta ** 2 / (2 * spread ** 2))[..., None] * colour
+        if noise:
+            images[k] += rng.normal(0.0, noise, images[k].shape)
+        images[k][~surface.mask] = 0.0
+    return images.astype(np.float32)
 
 
 def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:
