@@ -41,7 +41,7 @@ from .errors import InputError
 from .gauge import Gauge
 from .noise import NoiseModel
 from .options import Options
-from .reconstruct import (LowSolvedWarning, MatchGroup, Reconstruction, Timings,
+from .reconstruct import (LowSolvedWarning, Reconstruction, Timings, _median, _percentile,
                           first_residuals, low_solved_message, measured_model_scale,
                           reconstruct)
 
@@ -238,7 +238,6 @@ def _stitch(results: Sequence[Reconstruction], said, mask, seconds) -> Reconstru
         warnings.warn(message, LowSolvedWarning, stacklevel=3)
     q = quality[matched]
     refined = uncertainty[solved]
-    refined = refined[np.isfinite(refined)]
     timing = Timings(**{f.name: sum(getattr(r.stats.seconds, f.name) or 0.0 for r in results)
                         for f in dataclasses.fields(Timings)})
     stats = dataclasses.replace(
@@ -254,11 +253,9 @@ def _stitch(results: Sequence[Reconstruction], said, mask, seconds) -> Reconstru
                                              for r in results))
                            for i in range(first.images)],
         pixels_by_reason=counts("pixels_by_reason"),
-        residual_median=float(np.median(q)) if q.size else None,
-        residual_p95=float(np.percentile(q, 95)) if q.size else None,
-        warnings=tuple(warnings_said), refined=int(refined.size),
-        uncertainty_median=float(np.median(refined)) if refined.size else None,
-        uncertainty_p95=float(np.percentile(refined, 95)) if refined.size else None,
+        residual_median=_median(q), residual_p95=_percentile(q, 95),
+        warnings=tuple(warnings_said), refined=total("refined"),
+        uncertainty_median=_median(refined), uncertainty_p95=_percentile(refined, 95),
         seconds=dataclasses.replace(timing, total=seconds, integration=None))
     return Reconstruction(normals, albedo, quality, uncertainty, solved, reason, bands_used,
                           dropped, stats)
