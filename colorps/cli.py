@@ -120,6 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --lights: one 'r g b' (or one value) per image")
     rec.add_argument("--virtual-radius", type=_positive_float, default=100.0, metavar="R",
                      help="with --lights: radius (px) of the rendered gauge sphere")
+    rec.add_argument("--brdf", choices=("fitted", "lambert"), default=_DEFAULTS.brdf,
+                     help="with --lights: the finish the gauge is rendered with (fitted: "
+                          "diffuse falloff + highlight fitted to the scene)")
     rec.add_argument("--gauge-albedo", type=_albedo, default=DEFAULT_ALBEDO, metavar="A|R,G,B",
                      help="albedo of the gauge, one value or one per band")
     rec.add_argument("--out", required=True, metavar="DIR", help="output folder")

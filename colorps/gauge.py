@@ -143,7 +143,7 @@ class Gauge:
 
     @classmethod
     def virtual(cls, lights, *, radius: float = 100.0, bands: int | None = None,
-                brdf: str = "lambert") -> "Gauge":
+                brdf="lambert") -> "Gauge":
         """A sphere gauge rendered under calibrated lights (no gauge photographs).
 
         Parameters
@@ -155,8 +155,10 @@ class Gauge:
             entries; the refinement goes past its pixel grid).
         bands : int, optional
             Bands of the scene images (default: the intensities').
-        brdf : {"lambert", "oren-nayar"}, optional
-            The finish assumed for scene and gauge alike.
+        brdf : {"lambert", "oren-nayar"} or BRDF, optional
+            The finish assumed for scene and gauge alike: a name of
+            :func:`colorps.synth.render`'s, or a :class:`colorps.brdf.BRDF`
+            (fitted to the scene by :func:`colorps.brdf.fit_brdf`).
 
         Returns
         -------
@@ -172,13 +174,20 @@ class Gauge:
         >>> gauge.stack.shape, gauge.sphere
         ((3, 50, 50, 3), (24.5, 24.5, 20.0))
         """
+        from .brdf import BRDF
         from .synth import render, sphere_surface
 
         bands = bands or lights.intensities.shape[1]
         size = int(np.ceil(2 * radius + 10))
         centre = (size - 1) / 2.0
         ball = sphere_surface(size, radius, bands=bands)
-        stack = render(ball, lights.as_lighting(bands), brdf=brdf)
+        if isinstance(brdf, BRDF):
+            lighting = lights.as_lighting(bands)
+            stack = np.zeros((lights.images, size, size, bands), dtype=np.float32)
+            stack[:, ball.mask] = brdf.shade(ball.normals[ball.mask], lights.directions,
+                                             lighting.colours[:, 0, :])
+        else:
+            stack = render(ball, lights.as_lighting(bands), brdf=brdf)
         gauge = cls.from_sphere((size, size), centre, centre, radius, albedo=DEFAULT_ALBEDO)
         return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack)
 

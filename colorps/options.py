@@ -30,6 +30,7 @@ MIN_IMAGES = {"mono": 3, "colour": 2}
 _MODES = ("colour", "mono")
 _ENCODINGS = ("auto", "linear", "srgb")
 _MESHES = (None, "ply", "obj", "both")
+_BRDFS = ("fitted", "lambert")
 
 
 def dark_threshold(dark_level: float, images: int) -> float:
@@ -104,6 +105,11 @@ class Options:
         Files only: refuse a stack whose decoded pixels (float32) would take
         more than this many GiB, before decoding any (headers are read first).
         A tiled run checks one tile against it.
+    brdf : {"fitted", "lambert"}
+        Virtual gauges only (``--lights``): the finish the gauge is rendered
+        with. "fitted": a diffuse falloff and highlight fitted to the scene's
+        own observations, refitted twice (:mod:`colorps.brdf`); "lambert":
+        an ideal matte finish.
     tile : int or None
         Files only: process the scene in bands of this many rows, each read
         from the files when needed (:mod:`colorps.tiles`); the same maps as an
@@ -135,6 +141,7 @@ class Options:
     height: bool = True
     mesh: Literal["ply", "obj", "both"] | None = None
     max_input_gib: float = 8.0
+    brdf: Literal["fitted", "lambert"] = "fitted"
     tile: int | None = None
 
     def __post_init__(self) -> None:
@@ -175,6 +182,8 @@ class Options:
         if self.encoding not in _ENCODINGS:
             raise InputError(f"encoding: expected 'auto', 'linear' or 'srgb', "
                              f"got {self.encoding!r}")
+        if self.brdf not in _BRDFS:
+            raise InputError(f"brdf: expected 'fitted' or 'lambert', got {self.brdf!r}")
         if self.mesh not in _MESHES:
             raise InputError(f"mesh: expected 'ply', 'obj', 'both' or None, got {self.mesh!r}")
         if self.tile is not None and (isinstance(self.tile, bool) or

@@ -60,8 +60,9 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         Replace existing results.
     lights, light_intensities : str or Path, optional
         A light file (:func:`colorps.read_lights`) instead of gauge images: the
-        gauge is rendered (:meth:`colorps.Gauge.virtual`, a Lambertian sphere
-        of ``virtual_radius`` pixels).
+        gauge is rendered (:meth:`colorps.Gauge.virtual`, a sphere of
+        ``virtual_radius`` pixels with the finish ``options.brdf``: by default
+        fitted to the scene, :func:`colorps.brdf.fit_scene_brdf`).
     progress : bool, optional
         Progress bars on reading and matching.
     scheduler : str or dask.distributed.Client, optional
@@ -74,6 +75,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     Reconstruction
         With its height map when ``options.height``.
     """
+    from .brdf import BRDF, fit_scene_brdf
     from .gauge import Gauge, find_sphere
     from .lights import read_lights
     from .noise import NoiseModel, estimate_noise
@@ -108,6 +110,9 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         if lights is not None and "auto" in (options.read_noise, options.gain):
             raise InputError("--tile with --lights needs --read-noise and --gain: the noise "
                              "of a virtual-gauge run is fitted to the whole scene at once")
+        if lights is not None and options.brdf == "fitted":
+            raise InputError("--tile with --lights needs --brdf lambert: the finish of a "
+                             "virtual-gauge run is fitted to the whole scene at once")
     if lights is not None:
         light_set = read_lights(lights, light_intensities, images=len(scene_paths))
         gauge_paths = []
@@ -136,9 +141,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     scene_noise = noise_base(scene_info, options.encoding)
     requested = options  # "auto" levels resolve per stack, from its own files
     options = options.with_levels(*input_levels(scene_info, options.encoding))
+    brdf = fit_history = None
     if lights is not None:
-        gauge = Gauge.virtual(light_set, radius=virtual_radius, bands=scene.shape[3])
-        gauge_stack, found = gauge.stack, gauge.sphere
         gauge_noise = NoiseModel(read=0.0, gain=0.0)  # rendered: only float rounding
         gauge_levels = options.replace(clip_level=None)
         if "auto" in (options.read_noise, options.gain):
@@ -150,6 +154,14 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
             options = options.replace(
                 read_noise=fitted.read if options.read_noise == "auto" else options.read_noise,
                 gain=fitted.gain if options.gain == "auto" else options.gain)
+        brdf = BRDF.lambert()
+        if options.brdf == "fitted":
+            brdf, fit_history = fit_scene_brdf(scene, light_set, options, mask=mask,
+                                               noise=scene_noise, radius=virtual_radius,
+                                               progress=progress)
+        gauge = Gauge.virtual(light_set, radius=virtual_radius, bands=scene.shape[3],
+                              brdf=brdf)
+        gauge_stack, found = gauge.stack, gauge.sphere
     else:
         gauge_stack, _ = read_stack(gauge_paths, options.encoding, name="gauge",
                                     progress=progress)
@@ -186,6 +198,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         lights=None if lights is None else str(lights),
         light_intensities=None if light_intensities is None else str(light_intensities),
         virtual_gauge=lights is not None, gauge_albedo=gauge_albedo,
+        brdf=None if brdf is None else brdf.as_dict(), brdf_fits=fit_history,
         mask=None if mask_path is None else str(mask_path), channels=names,
         options=options.as_dict(),
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
