@@ -42,15 +42,16 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
         Band-major unit vectors, 0 where the band is unusable.
     norms : (H, W, B) float32
     band_invalid, band_clipped, band_dark : (H, W, B) bool
-    clipped_lights : (H, W) uint64
-        Bit i set when a source measurement of light i is clipped (m <= 64).
+    clipped_lights : (H, W, words) uint64
+        Light masks (:mod:`colorps.light_masks`): image i set when a source
+        measurement of it is clipped.
     """
     m, h, w, c = stack.shape
     n_bands = mixing.shape[0]
-    track_lights = m <= 64
     for y in prange(h):
         for x in range(w):
-            lights = np.uint64(0)
+            for word in range(clipped_lights.shape[2]):
+                clipped_lights[y, x, word] = 0
             for b in range(n_bands):
                 invalid = False
                 clipped = False
@@ -64,8 +65,7 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
                         v = stack[i, y, x, k]
                         if v >= clip_level:  # +Inf too: clipped and invalid
                             clipped = True
-                            if track_lights:
-                                lights |= np.uint64(1) << np.uint64(i)
+                            clipped_lights[y, x, i >> 6] |= np.uint64(1) << np.uint64(i & 63)
                         if _invalid(v):
                             invalid = True
                             continue
@@ -81,7 +81,6 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
                 usable = not invalid and not clipped and not dark
                 for i in range(m):
                     signatures[y, x, b * m + i] = (ov[y, x, b, i] / norm) if usable else 0.0
-            clipped_lights[y, x] = lights
 
 
 @njit(cache=True, parallel=True, error_model="numpy")

@@ -131,6 +131,12 @@ def _variance(v, noise, row, table):
     return variance
 
 
+@njit(cache=True, inline="always")
+def _has(mask, i):
+    """Image i is in the light mask (words of uint64, colorps.light_masks)."""
+    return (mask[i >> 6] >> np.uint64(i & 63)) & np.uint64(1) != 0
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, table, obs, weights):
     """Fill obs (B, M) with the pixel's measurements and weights (B, M) with
@@ -143,14 +149,14 @@ def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, table, obs
         g2 = 0.0
         for i in range(n_lights):
             obs[k, i] = scene_ov[py, px, k, i]
-            if used and not (dropped >> np.uint64(i)) & np.uint64(1):
+            if used and not _has(dropped, i):
                 s2 += obs[k, i] * obs[k, i]
                 g = gauge_ov[y, x, k, i]
                 g2 += g * g
         ratio2 = s2 / g2 if g2 > 0.0 else 0.0
         for i in range(n_lights):
             weights[k, i] = 0.0
-            if used and g2 > 0.0 and not (dropped >> np.uint64(i)) & np.uint64(1):
+            if used and g2 > 0.0 and not _has(dropped, i):
                 variance = _variance(obs[k, i], noise, 0, table) + \
                     ratio2 * _variance(gauge_ov[y, x, k, i], noise, 1, table)
                 weights[k, i] = 1.0 / max(variance, 1e-30)
@@ -218,7 +224,7 @@ def refine(coef, ncoef, window, scene_ov, gauge_ov, py, px, qy, qx, bands, dropp
     gauge pixel has no usable neighbourhood. scene_ov (H, W, B, M) and
     gauge_ov (Hg, Wg, B, M) are the observation vectors; pixel p is (py, px),
     matched to gauge pixel (qy, qx), with bands (bit k: band used) and dropped
-    (bit i: light dropped). noise (2, 3) and table (2, Q) describe the scene's
+    (light masks, (P, words) uint64). noise (2, 3) and table (2, Q) describe the scene's
     (row 0) and gauge's (row 1) noise (:func:`_variance`). Outputs: the gauge
     pixel the fit ended at (out_y, out_x) and the offset (u, v) from it, the
     unit normal, the normal's angular variance (radians^2), and whether it was

@@ -109,8 +109,9 @@ class Capture:
     scene_ov : (H, W, B, m) ndarray of float32
         Scene OVs of the signature bands (0 where a band is unusable).
     scene_valid : (H, W, B) ndarray of bool
-    scene_clipped : (H, W) ndarray of uint64
-        Lights with a clipped measurement at a scene pixel.
+    scene_clipped : (H, W, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`) of the images with a clipped
+        measurement at a scene pixel.
     scene_invalid : (H, W) ndarray of bool
         Scene pixels with an invalid (NaN, Inf, negative) measurement.
     gauge_ov : (Hg, Wg, B, m) ndarray of float32

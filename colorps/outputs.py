@@ -18,8 +18,9 @@ uncertainty.exr float32 68 % angular radius of each refined normal (degrees);
                 NaN where not solved or not refined
 lights.png      lights dropped per pixel (cast shadows, highlights): black
                 none, then :data:`DROPPED_COLOURS` for 1, 2, 3+ lights
-lights.exr      float32 bit mask of the dropped lights (bit i: image i),
-                exact up to 24 lights
+lights.exr      the dropped lights as float32 bit masks of 16 images per
+                channel: bit i % 16 of channel i // 16 is image i (channels
+                "L" for up to 16 images, else "L0-15", "L16-31", ...)
 report.json     inputs, options, statistics, pixels by reason
 height.exr      float32 height in pixels (see :mod:`colorps.integrate`), when
                 the result has a height map
@@ -277,8 +278,8 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report,
         "invalid.png": lambda p: write_image(p, reason_picture(result.reason), dtype="uint8"),
         "lights.png": lambda p: write_image(p, _dropped_picture(result.lights_dropped_count),
                                             dtype="uint8"),
-        "lights.exr": lambda p: write_image(p, result.dropped_lights.astype(np.float32),
-                                            channel_names=["L"]),
+        "lights.exr": lambda p: _write_light_channels(p, result.dropped_lights,
+                                                      result.stats.images),
         "uncertainty.exr": lambda p: write_image(p, result.uncertainty, channel_names=["U"]),
     }
     z = result.height
@@ -300,6 +301,24 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report,
     writers["report.json"] = lambda p: p.write_text(
         json.dumps(doc, indent=2, default=_jsonable))
     return writers
+
+
+#: Images per float32 channel of lights.exr (exact integers up to 2^24).
+LIGHTS_PER_CHANNEL = 16
+
+
+def _write_light_channels(path, dropped: np.ndarray, m: int):
+    """lights.exr: 16 images' bits per float32 channel."""
+    from . import light_masks
+
+    flags = light_masks.to_bool(dropped, m)
+    starts = range(0, m, LIGHTS_PER_CHANNEL)
+    weights = 2.0 ** np.arange(LIGHTS_PER_CHANNEL)
+    channels = np.stack([flags[..., a:a + LIGHTS_PER_CHANNEL] @ weights[:min(
+        LIGHTS_PER_CHANNEL, m - a)] for a in starts], axis=-1).astype(np.float32)
+    names = ["L"] if m <= LIGHTS_PER_CHANNEL else \
+        [f"L{a}-{min(a + LIGHTS_PER_CHANNEL, m) - 1}" for a in starts]
+    return write_image(path, channels, channel_names=names)
 
 
 def _dropped_picture(count: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _pixel_kernels
+from . import _pixel_kernels, light_masks
 from ._checks import check_stack
 from .errors import InputError
 from .gauge import Gauge, parse_albedo
@@ -73,8 +73,6 @@ MAX_SUBSET_GROUPS = 128
 #: match explains least (largest |per-light residual|). Every light when m is at
 #: most this; with DiLiGenT's 96 lights, trying all cost 190 s of a 205 s run.
 MAX_LIGHTS_TRIED = 8
-#: Dropped lights are bits of a uint64: only lights 0..63 can be dropped.
-MAX_DROPPABLE_LIGHTS = 64
 
 
 class GaugeWarning(UserWarning):
@@ -236,9 +234,10 @@ class Reconstruction:
     bands_used : (H, W) ndarray of uint8
         Bit k set when band k of the signature was matched (colour mode falls
         back to the valid bands of a pixel).
-    dropped_lights : (H, W) ndarray of uint64
-        Bit i set when light (image) i was left out of the pixel's match (a
-        cast shadow or highlight there); see :attr:`lights_dropped_count`.
+    dropped_lights : (H, W, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`: image i is bit i % 64 of
+        word i // 64) of the lights left out of each pixel's match (a cast
+        shadow or highlight there); see :attr:`lights_dropped_count`.
     stats : ReconstructionStats
     height : (H, W) ndarray or None
         Height map (pixels), when integrated: see :meth:`with_height`.
@@ -264,7 +263,7 @@ class Reconstruction:
     @property
     def lights_dropped_count(self) -> np.ndarray:
         """(H, W) uint8 number of lights dropped from each pixel's match."""
-        return _popcount(self.dropped_lights).astype(np.uint8)
+        return light_masks.count(self.dropped_lights).astype(np.uint8)
 
     def with_height(self, height: np.ndarray, seconds: float | None = None
                     ) -> "Reconstruction":
@@ -393,7 +392,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         tests_per_lookup=matches.tests / n_matched if n_matched else 0.0,
         pixels=h * w, solved=int(solved.sum()),
         solved_from_band_subset=int((solved & (matches.bands_used != full)).sum()),
-        solved_from_light_subset=int((solved & (matches.dropped != 0)).sum()),
+        solved_from_light_subset=int((solved & ~light_masks.is_empty(matches.dropped)).sum()),
         lights_dropped_per_pixel=_dropped_histogram(matches.dropped[solved]),
         dropped_per_light=_dropped_per_light(matches, solved, m),
         pixels_by_reason=reason_counts(reason), clip_level=options.clip_level,
@@ -411,7 +410,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
                         total=time.perf_counter() - t_start),
     )
     return Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
-                          matches.bands_used, np.where(solved, matches.dropped, np.uint64(0)),
+                          matches.bands_used,
+                          np.where(solved[..., None], matches.dropped, np.uint64(0)),
                           stats)
 
 
@@ -539,8 +539,8 @@ class _Matches:
     quality: np.ndarray     # (H, W) residual in noise units (NaN: no match attempted)
     distance: np.ndarray    # (H, W) plain signature distance per band
     bands_used: np.ndarray  # (H, W) bit mask of the bands matched
-    dropped: np.ndarray     # (H, W) uint64 bit mask of the lights dropped
-    brighter: np.ndarray    # (H, W) uint64: of those, the ones brighter than the match
+    dropped: np.ndarray     # (H, W, words) light masks of the lights dropped
+    brighter: np.ndarray    # (H, W, words): of those, the ones brighter than the match
     groups: tuple[MatchGroup, ...]
     model_scale: float
     buckets: float          # summed over lookups
@@ -606,20 +606,24 @@ def _first_match(capture: Capture, mask: np.ndarray, options: Options,
         fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
         valid = np.where(fixes_normal[:, None], kept, valid)
         levels = np.where(valid, np.maximum(levels, DROP_LEVEL + 1), 0).astype(np.int8)
-    dropped = np.zeros(len(ys), dtype=np.uint64)
+    dropped = light_masks.empty((len(ys),), m)
     if options.light_subsets:
         dropped, valid, levels = _drop_clipped_lights(capture, ys, xs, valid, levels,
                                                       options)
     code = (valid * (1 << np.arange(n_bands))).sum(axis=-1)
-    state = _MatchState.empty(h, w, n_bands)
+    state = _MatchState.empty(h, w, n_bands, m)
     state.levels[ys, xs] = levels
-    keys, inverse = _group_rows(np.column_stack([dropped, code, levels]))
+    words = dropped.shape[1]
+    # One int64 row per pixel: its light-mask words (bit for bit), bands, levels.
+    keys, inverse = _group_rows(np.column_stack([dropped.view(np.int64), code.astype(np.int64),
+                                                 levels.astype(np.int64)]))
     order = np.argsort(-np.bincount(inverse), kind="stable")
     with tqdm(total=len(ys), desc="matching", unit="px", unit_scale=True,
               disable=not progress, leave=False) as bar:
         for g in order:
-            lights_dropped = tuple(i for i in range(m) if int(keys[g, 0]) >> i & 1)
-            bands = tuple(k for k in range(n_bands) if int(keys[g, 1]) >> k & 1)
+            mask_words = keys[g, :words].view(np.uint64)
+            lights_dropped = light_masks.lights(mask_words)
+            bands = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
             pick = inverse == g
             bar.update(int(pick.sum()))
             if len(bands) * (m - len(lights_dropped) - 1) < 2:
@@ -627,12 +631,13 @@ def _first_match(capture: Capture, mask: np.ndarray, options: Options,
             gy, gx = ys[pick], xs[pick]
             kept = tuple(i for i in range(m) if i not in lights_dropped)
             result = capture.match(gy, gx, bands,
-                                   tuple(int(v) for v in keys[g, 2:][list(bands)]), kept,
+                                   tuple(int(v) for v in keys[g, words + 1:][list(bands)]),
+                                   kept,
                                    grid_n=options.grid_n, threads=options.threads,
                                    sample_size=AUTO_N_SAMPLE)
-            state.record(gy, gx, result, bands, keys[g, 1], lights_dropped)
-            state.dropped[gy, gx] = keys[g, 0]
-            state.brighter[gy, gx] = keys[g, 0]  # clipped: brighter than recorded
+            state.record(gy, gx, result, bands, keys[g, words], lights_dropped)
+            state.dropped[gy, gx] = mask_words
+            state.brighter[gy, gx] = mask_words  # clipped: brighter than recorded
     return state
 
 
@@ -654,15 +659,15 @@ def _drop_clipped_lights(capture: Capture, ys, xs, valid, levels, options: Optio
     masks, usable bands and levels."""
     m = capture.images
     unusable = capture.scene_clipped[ys, xs]
-    count = _popcount(unusable)
+    count = light_masks.count(unusable)
     invalid = capture.scene_invalid[ys, xs]
-    candidates = (unusable != 0) & (count <= MAX_CLIPPED_FRACTION * m) & \
+    candidates = (count > 0) & (count <= MAX_CLIPPED_FRACTION * m) & \
         (m - count >= MIN_LIGHTS) & ~valid.all(axis=-1) & ~invalid
-    dropped = np.zeros(len(ys), dtype=np.uint64)
+    dropped = light_masks.empty((len(ys),), m)
     if not candidates.any():
         return dropped, valid, levels
     pick = np.flatnonzero(candidates)
-    kept = ~_lights_of(unusable[pick], m).T  # (P', m)
+    kept = ~light_masks.to_bool(unusable[pick], m)  # (P', m)
     ov = capture.scene_ov[ys[pick], xs[pick]] * kept[:, None, :]
     norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
     bands = norms > capture.min_norm
@@ -691,14 +696,14 @@ class _MatchState:
     totals: np.ndarray  # buckets, tests, seconds grid, seconds lookup
 
     @classmethod
-    def empty(cls, h: int, w: int, n_bands: int) -> "_MatchState":
+    def empty(cls, h: int, w: int, n_bands: int, m: int) -> "_MatchState":
         return cls(row=np.full((h, w), -1, dtype=np.int64),
                    quality=np.full((h, w), np.nan, dtype=np.float32),
                    distance=np.full((h, w), np.nan, dtype=np.float32),
                    bands_used=np.zeros((h, w), dtype=np.uint8),
                    levels=np.zeros((h, w, n_bands), dtype=np.int8),
-                   dropped=np.zeros((h, w), dtype=np.uint64),
-                   brighter=np.zeros((h, w), dtype=np.uint64), groups=[],
+                   dropped=light_masks.empty((h, w), m),
+                   brighter=light_masks.empty((h, w), m), groups=[],
                    totals=np.zeros(4))
 
     def record(self, ys, xs, result: GroupResult, bands, code, lights_dropped) -> None:
@@ -736,12 +741,13 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
     would multiply.
     """
     m, n_bands = capture.images, capture.bands
-    bits = _light_bits(m)
+    bits = light_masks.single(m)
+    words = bits.shape[1]
     before = dict(row=state.row.copy(), quality=state.quality.copy(),
                   distance=state.distance.copy(), dropped=state.dropped.copy(),
                   brighter=state.brighter.copy())
     for _ in range(options.max_dropped_lights):
-        left = m - _popcount(state.dropped)
+        left = m - light_masks.count(state.dropped)
         candidates = (state.row >= 0) & (state.quality > SUBSET_TRIGGER) & \
             (left - 1 >= MIN_LIGHTS)
         if not candidates.any():
@@ -753,18 +759,16 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
         best_distance = np.zeros(len(ys), dtype=np.float32)
         dropped = state.dropped[ys, xs]
         codes = state.bands_used[ys, xs].astype(np.uint64)
-        tried = _lights_to_try(capture, state, ys, xs, bits)
+        tried = _lights_to_try(capture, state, ys, xs)
         which_pixel, which_light = np.nonzero(tried)
-        keys, inverse = np.unique(
-            np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel]]),
-            axis=0, return_inverse=True)
-        inverse = inverse.ravel()
+        keys, inverse = _group_rows(
+            np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel]]))
         order = np.argsort(-np.bincount(inverse), kind="stable")[:MAX_SUBSET_GROUPS]
         for g in order:
             pick = np.flatnonzero(inverse == g)
             pixels = which_pixel[pick]
-            lights_kept = tuple(i for i in range(m) if not int(keys[g, 0]) >> i & 1)
-            band_tuple = tuple(k for k in range(n_bands) if int(keys[g, 1]) >> k & 1)
+            lights_kept = tuple(np.flatnonzero(~light_masks.to_bool(keys[g, :words], m)))
+            band_tuple = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
             result = capture.match(ys[pixels], xs[pixels], band_tuple,
                                    (0,) * len(band_tuple), lights_kept, grid_n=options.grid_n,
                                    threads=options.threads, sample_size=AUTO_N_SAMPLE)
@@ -786,43 +790,37 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
         state.distance[ky, kx] = best_distance[keep]
         state.dropped[ky, kx] |= bits[light]
     # Keep a subset match only where it explains the pixel clearly better.
-    changed = state.dropped != before["dropped"]
+    changed = (state.dropped != before["dropped"]).any(axis=-1)
     revert = changed & ~(state.quality <= SUBSET_GAIN * before["quality"])
     for name, value in before.items():
         getattr(state, name)[revert] = value[revert]
-    ky, kx = np.nonzero(state.dropped != before["dropped"])
+    ky, kx = np.nonzero((state.dropped != before["dropped"]).any(axis=-1))
     if not ky.size:
         return
     # Darker or brighter than the final match predicts?
-    lights = (state.dropped[ky, kx][:, None] & bits) == 0
+    lights = ~light_masks.to_bool(state.dropped[ky, kx], m)
     band_mask = ((state.bands_used[ky, kx][:, None] >> np.arange(n_bands)) & 1) == 1
     z = light_residuals(capture.scene_ov[ky, kx],
                         capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ky, kx]],
                         lights, band_mask, capture.model)
-    brighter = before["brighter"][ky, kx]
-    for i in range(m):
-        brighter |= np.where(~lights[:, i] & (z[:, i] > 0), bits[i], np.uint64(0))
-    state.brighter[ky, kx] = brighter
-    for subset, count in zip(*np.unique(state.dropped[ky, kx], return_counts=True)):
+    state.brighter[ky, kx] = before["brighter"][ky, kx] | \
+        light_masks.from_bool(~lights & (z > 0))
+    for subset, count in zip(*np.unique(state.dropped[ky, kx], axis=0, return_counts=True)):
         state.groups.append(MatchGroup(tuple(range(n_bands)), 0, None, int(count),
-                                       tuple(i for i in range(m) if int(subset) >> i & 1)))
+                                       light_masks.lights(subset)))
 
 
-def _lights_to_try(capture: Capture, state: "_MatchState", ys, xs, bits) -> np.ndarray:
+def _lights_to_try(capture: Capture, state: "_MatchState", ys, xs) -> np.ndarray:
     """(P, m) bool: the lights each pixel tries to drop this round.
 
-    Lights it still uses (and that a uint64 mask can hold), at most
-    MAX_LIGHTS_TRIED of them: the ones with the largest |per-light residual|
-    against its current match.
+    Lights it still uses, at most MAX_LIGHTS_TRIED of them: the ones with the
+    largest |per-light residual| against its current match.
     """
     m, n_bands = capture.images, capture.bands
-    droppable = min(m, MAX_DROPPABLE_LIGHTS)
-    dropped = state.dropped[ys, xs]
-    tried = np.zeros((len(ys), m), dtype=bool)
-    tried[:, :droppable] = (dropped[:, None] & bits[None, :droppable]) == 0
-    if droppable <= MAX_LIGHTS_TRIED or not len(ys):
+    used = ~light_masks.to_bool(state.dropped[ys, xs], m)
+    tried = used.copy()
+    if m <= MAX_LIGHTS_TRIED or not len(ys):
         return tried
-    used = (dropped[:, None] & bits[None, :]) == 0
     band_mask = ((state.bands_used[ys, xs][:, None] >> np.arange(n_bands)) & 1) == 1
     z = light_residuals(capture.scene_ov[ys, xs],
                         capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ys, xs]],
@@ -832,16 +830,6 @@ def _lights_to_try(capture: Capture, state: "_MatchState", ys, xs, bits) -> np.n
     chosen = np.zeros_like(tried)
     np.put_along_axis(chosen, top, True, axis=1)
     return chosen & tried
-
-
-def _popcount(values: np.ndarray) -> np.ndarray:
-    """Number of set bits of uint64 values."""
-    v = values.astype(np.uint64)
-    count = np.zeros(v.shape, dtype=np.int64)
-    while v.any():
-        count += (v & np.uint64(1)).astype(np.int64)
-        v = v >> np.uint64(1)
-    return count
 
 
 def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
@@ -871,7 +859,8 @@ def _albedo(scene: np.ndarray, gauge_stack: np.ndarray, solved: np.ndarray,
     """
     ys, xs = np.nonzero(solved)
     out = np.empty((len(ys), scene.shape[3]), dtype=np.float32)
-    excluded = np.ascontiguousarray(_lights_of(matches.dropped[ys, xs], scene.shape[0]).T)
+    excluded = np.ascontiguousarray(light_masks.to_bool(matches.dropped[ys, xs],
+                                                         scene.shape[0]))
     _pixel_kernels.albedo(scene, ys, xs, gauge_stack, matches.row[ys, xs],
                           np.ascontiguousarray(offset, dtype=np.float32), excluded,
                           np.inf if clip_level is None else float(clip_level),
@@ -883,7 +872,7 @@ def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
              matched: np.ndarray, dropped: np.ndarray) -> np.ndarray:
     """(H, W) uint8 :class:`Reason` codes; of several problems the larger code wins."""
     reason = np.full(mask.shape, Reason.SOLVED, dtype=np.uint8)
-    reason[solved & (dropped != 0)] = Reason.SOLVED_FROM_LIGHT_SUBSET
+    reason[solved & ~light_masks.is_empty(dropped)] = Reason.SOLVED_FROM_LIGHT_SUBSET
     unsolved = mask & ~solved
     reason[unsolved & scene_sig.band_dark.any(axis=-1)] = Reason.TOO_DARK
     reason[unsolved & scene_sig.band_clipped.any(axis=-1)] = Reason.CLIPPED
@@ -932,27 +921,13 @@ def _noise_model(gauge_stack: np.ndarray, gauge: Gauge, gauge_sig: SignatureSet,
     return dataclasses.replace(base, **changes) if changes else base
 
 
-def _lights_of(bitmask: np.ndarray, m: int) -> np.ndarray:
-    """(m, P) bool: light i set in each of the (P,) uint64 bit masks."""
-    return (bitmask[None, :] & _light_bits(m)[:, None]) != 0
-
-
-def _light_bits(m: int) -> np.ndarray:
-    """(m,) uint64: light i's bit in a dropped-lights mask; 0 (never dropped) for
-    lights past MAX_DROPPABLE_LIGHTS."""
-    i = np.arange(m)
-    return np.where(i < MAX_DROPPABLE_LIGHTS,
-                    np.uint64(1) << np.minimum(i, MAX_DROPPABLE_LIGHTS - 1).astype(np.uint64),
-                    np.uint64(0)).astype(np.uint64)
-
-
 def _dropped_histogram(dropped: np.ndarray) -> dict:
-    counts = np.bincount(_popcount(dropped), minlength=1)
+    counts = np.bincount(light_masks.count(dropped), minlength=1)
     return {str(k): int(v) for k, v in enumerate(counts)}
 
 
 def _dropped_per_light(matches: _Matches, solved: np.ndarray, m: int) -> list:
-    dropped = _lights_of(matches.dropped[solved], m)
-    brighter = _lights_of(matches.brighter[solved], m)
-    return [dict(light=i, darker=int((dropped[i] & ~brighter[i]).sum()),
-                 brighter=int(brighter[i].sum())) for i in range(m)]
+    dropped = light_masks.to_bool(matches.dropped[solved], m)
+    brighter = light_masks.to_bool(matches.brighter[solved], m)
+    return [dict(light=i, darker=int((dropped[:, i] & ~brighter[:, i]).sum()),
+                 brighter=int(brighter[:, i].sum())) for i in range(m)]

@@ -145,8 +145,9 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
         Flat index of each pixel's matched gauge pixel.
     bands : (P,) ndarray of uint8
         Bit k set: band k was matched.
-    dropped : (P,) ndarray of uint64
-        Bit i set: light i was left out of the match.
+    dropped : (P, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`) of the lights left out of
+        each match.
     scene_noise, gauge_noise : NoiseModel
         Weights are 1 / (sigma_S^2 + (|S_k| / |G_k|)^2 sigma_G^2).
     model_scale : float, optional
@@ -186,7 +187,8 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
             coef, ncoef, window, np.ascontiguousarray(scene_ov, dtype=np.float32),
             np.ascontiguousarray(gauge_ov, dtype=np.float32),
             np.asarray(ys, dtype=np.int64), np.asarray(xs, dtype=np.int64), qy, qx,
-            np.asarray(bands, dtype=np.uint8), np.asarray(dropped, dtype=np.uint64), noise,
+            np.asarray(bands, dtype=np.uint8),
+            np.ascontiguousarray(dropped, dtype=np.uint64).reshape(n, -1), noise,
             table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok)
     finally:
         numba.set_num_threads(previous)

@@ -24,7 +24,7 @@ from typing import Literal
 
 import numpy as np
 
-from . import _pixel_kernels
+from . import _pixel_kernels, light_masks
 from ._checks import check_stack
 from .errors import InputError
 from .options import FLOAT_DARK_LEVEL, dark_threshold
@@ -53,9 +53,9 @@ class SignatureSet:
     ov : (H, W, B, m) ndarray of float32
         The observation vectors of the signature bands, invalid measurements
         (NaN, Inf, negative) set to 0.
-    clipped_lights : (H, W) ndarray of uint64
-        Bit i set when image i has a clipped measurement in a band the
-        signature uses (all 0 beyond 64 images): the match can drop such
+    clipped_lights : (H, W, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`) of the images with a clipped
+        measurement in a band the signature uses: the match can drop such
         lights instead of losing the band.
     mode : {"colour", "mono"}
     bands : int
@@ -194,7 +194,7 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     sig = np.empty((h, w, b * m), dtype=np.float32)
     norms = np.empty((h, w, b), dtype=np.float32)
     bad_any, clipped_any, dark = (np.empty((h, w, b), dtype=bool) for _ in range(3))
-    lights = np.empty((h, w), dtype=np.uint64)
+    lights = light_masks.empty((h, w), m)
     _pixel_kernels.observation_vectors(
         np.ascontiguousarray(data, dtype=np.float32), mixing,
         np.inf if clip_level is None else float(clip_level), float(min_norm),
