@@ -7,7 +7,8 @@ y up, z towards the camera; all arithmetic on linear pixel values.
 from importlib.metadata import PackageNotFoundError, version
 
 from .errors import ColorPSError, GaugeError, ImageReadError, InputError, OutputError
-from . import synth
+from . import light_masks, synth
+from .brdf import BRDF, fit_scene_brdf
 from .gauge import Gauge, find_sphere
 from .geometry import angular_error, sphere_normals
 from .grid import BucketGrid, QueryStats
@@ -25,7 +26,7 @@ except PackageNotFoundError:  # running from a source tree
 
 __all__ = [
     "reconstruct", "Options", "Reconstruction", "ReconstructionStats", "Reason",
-    "Gauge", "find_sphere", "Lights", "read_lights", "write_lights", "BucketGrid", "QueryStats",
+    "Gauge", "find_sphere", "BRDF", "fit_scene_brdf", "light_masks", "Lights", "read_lights", "write_lights", "BucketGrid", "QueryStats",
     "SignatureSet", "compute_signatures", "luminance",
     "integrate", "weights_from_quality", "angular_error", "sphere_normals", "synth",
     "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",

@@ -42,21 +42,32 @@ SCENE_FITS = 2
 #: in between; g(1) = 1 fixes the scale the albedo carries).
 DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 #: Shininess values tried (Blinn-Phong exponents; 10,000 is a highlight about
-#: 1 degree wide).
-SHININESS_GRID = tuple(float(v) for v in np.geomspace(4.0, 10000.0, 18))
+#: 1 degree wide), then SHININESS_STEPS halvings of the (logarithmic) step
+#: around the best.
+SHININESS_GRID = tuple(float(v) for v in np.geomspace(4.0, 10000.0, 10))
+SHININESS_STEPS = 2
 #: Pixels of the scene the fit uses (a fixed random sample of the solved ones).
 FIT_PIXELS = 4000
 #: Observations whose cosine of incidence at the estimated normal is below this
 #: are left out: attached-shadow boundaries are where normal errors matter most.
 MIN_FIT_COSINE = 0.02
+#: fit_brdf then refines the sample's normals under the fit and fits again,
+#: JOINT_ROUNDS times (NORMAL_STEPS damped Gauss-Newton steps of at most
+#: MAX_NORMAL_STEP radians, derivatives over NORMAL_EPS radians): normals
+#: matched with a too-matte gauge are tilted to explain the highlights, and
+#: fits at them alone underestimate the highlight.
+JOINT_ROUNDS = 4
+NORMAL_STEPS = 5
+MAX_NORMAL_STEP = 0.1
+NORMAL_EPS = 1e-4
 #: Alternating least-squares rounds per shininess value.
 FIT_ROUNDS = 8
 #: Huber threshold of the relative residuals, in robust standard deviations.
 HUBER_K = 2.0
 #: Weight of the prior pulling each falloff value towards Lambert (1), and of
 #: the smoothness of the falloff (second differences), relative to the data.
-PRIOR_WEIGHT = 1e-3
-SMOOTHNESS_WEIGHT = 1e-2
+PRIOR_WEIGHT = 1e-6
+SMOOTHNESS_WEIGHT = 1e-4
 
 
 @dataclass(frozen=True)
@@ -280,17 +291,82 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     # Relative weights: each pixel and band counts alike whatever its albedo.
     scale = np.sqrt((obs ** 2).sum(axis=0))  # (N, c)
     base_weight = np.where(use, 1.0 / np.maximum(scale, 1e-12) ** 2, 0.0)
-    diffuse_basis = _hats(cosine)  # (m, N, K)
-    best = None
-    for shininess in SHININESS_GRID:
-        lobe = _lobe(normals, directions, shininess)
-        fit = _fit_at(obs, base_weight, diffuse_basis, lobe)
-        if best is None or fit[2] < best[2]:
-            best = (*fit, shininess)
-    falloff, specular, cost, shininess = best
-    if not np.any(specular > 0):
-        shininess = BRDF().shininess
-    return BRDF(tuple(falloff), tuple(specular), shininess), float(np.sqrt(cost))
+    normals = np.array(normals, dtype=np.float64)
+    grid = SHININESS_GRID
+    step = np.log(SHININESS_GRID[1] / SHININESS_GRID[0])
+    for round_ in range(1 + JOINT_ROUNDS):
+        if round_:
+            normals = _refine_normals(obs, base_weight, normals, brdf, directions)
+        diffuse_basis = _hats(np.maximum(normals @ directions.T, 0.0).T)  # (m, N, K)
+        fits = {}
+
+        def fit_at(shininess):
+            if shininess not in fits:
+                fits[shininess] = _fit_at(obs, base_weight, diffuse_basis,
+                                          _lobe(normals, directions, shininess))
+            return fits[shininess][2]
+
+        shininess = min(grid, key=fit_at)
+        for _ in range(SHININESS_STEPS):
+            step /= 2.0
+            shininess = min((shininess * np.exp(-step), shininess, shininess * np.exp(step)),
+                            key=fit_at)
+        # Later rounds search around this round's best, at the last step.
+        grid, step = (shininess,), 2.0 * step
+        falloff, specular, cost = fits[shininess]
+        brdf = BRDF(tuple(falloff), tuple(specular), shininess)
+    if not np.any(brdf.specular):
+        brdf = BRDF(brdf.falloff, brdf.specular)
+    return brdf, float(np.sqrt(cost))
+
+
+def _refine_normals(obs, weight, normals, brdf: BRDF, directions) -> np.ndarray:
+    """Normals that explain the observations best under ``brdf`` (damped
+    Gauss-Newton on two tangent angles per pixel, albedos projected out)."""
+    m, n_pixels, c = obs.shape
+    ones = np.ones((m, c))
+    # Tangent basis of each normal.
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(normals, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normals, t1)
+    root = np.sqrt(weight)
+
+    def residual(n):
+        model = brdf.shade(n, directions, ones)
+        albedo = (weight * model * obs).sum(0) / np.maximum((weight * model ** 2).sum(0),
+                                                            1e-30)
+        return ((obs - albedo[None] * model) * root).transpose(1, 0, 2) \
+            .reshape(n_pixels, -1)
+
+    def moved(du, dv):
+        n = normals + du[:, None] * t1 + dv[:, None] * t2
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        n[:, 2] = np.maximum(n[:, 2], 0.0)  # stay facing the camera
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    u = np.zeros(n_pixels)
+    v = np.zeros(n_pixels)
+    damping = np.full(n_pixels, 1e-3)
+    current = residual(moved(u, v))
+    cost = (current ** 2).sum(1)
+    for _ in range(NORMAL_STEPS):
+        ju = (residual(moved(u + NORMAL_EPS, v)) - current) / NORMAL_EPS
+        jv = (residual(moved(u, v + NORMAL_EPS)) - current) / NORMAL_EPS
+        a, b, d = (ju * ju).sum(1), (ju * jv).sum(1), (jv * jv).sum(1)
+        gu, gv = (ju * current).sum(1), (jv * current).sum(1)
+        a_d, d_d = a * (1 + damping), d * (1 + damping)
+        det = np.maximum(a_d * d_d - b * b, 1e-30)
+        du = np.clip(-(d_d * gu - b * gv) / det, -MAX_NORMAL_STEP, MAX_NORMAL_STEP)
+        dv = np.clip(-(a_d * gv - b * gu) / det, -MAX_NORMAL_STEP, MAX_NORMAL_STEP)
+        trial = residual(moved(u + du, v + dv))
+        trial_cost = (trial ** 2).sum(1)
+        better = trial_cost < cost
+        u, v = np.where(better, u + du, u), np.where(better, v + dv, v)
+        current = np.where(better[:, None], trial, current)
+        cost = np.where(better, trial_cost, cost)
+        damping = np.where(better, damping / 3.0, damping * 10.0)
+    return moved(u, v)
 
 
 def _fit_at(obs, base_weight, diffuse_basis, lobe):

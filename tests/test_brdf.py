@@ -1,0 +1,133 @@
+"""The fitted finish of virtual gauges, and light masks wider than 64 images."""
+
+import numpy as np
+import pytest
+
+from colorps import Gauge, InputError, Lights, Options, angular_error, light_masks, reconstruct
+from colorps import synth
+from colorps.brdf import BRDF, DIFFUSE_KNOTS, fit_brdf, fit_scene_brdf
+from colorps.noise import NoiseModel
+
+#: A glossy plastic: darker than cosine at grazing incidence, a sharp highlight
+#: that is stronger in blue than in red.
+GLOSSY = BRDF(falloff=(0.85, 0.86, 0.88, 0.91, 0.95, 0.98, 1.0, 1.0),
+              specular=(0.02, 0.03, 0.04), shininess=300.0)
+
+
+@pytest.fixture(scope="module")
+def lights():
+    low = synth.ring_lights(8, 55.0)
+    high = synth.ring_lights(8, 25.0, azimuth0_deg=22.5)
+    directions = np.concatenate([low.directions[:, 0], high.directions[:, 0]])
+    colours = np.random.default_rng(3).uniform(0.7, 1.0, (16, 3))
+    return Lights(directions, colours)
+
+
+def _render(surface, lights, brdf, noise=0.0, seed=0):
+    stack = np.zeros((lights.images, *surface.mask.shape, 3), dtype=np.float32)
+    values = brdf.shade(surface.normals[surface.mask], lights.directions, lights.intensities)
+    stack[:, surface.mask] = values * surface.albedo[surface.mask][None]
+    if noise:
+        stack += np.random.default_rng(seed).normal(0.0, noise, stack.shape).astype(np.float32)
+        np.maximum(stack, 0.0, out=stack)
+    return stack
+
+
+def test_lambert_shading_is_the_cosine(lights):
+    normals = synth.sphere_surface(41, 18).normals.reshape(-1, 3)
+    expected = np.maximum(normals @ lights.directions.T, 0.0).T[..., None] * \
+        lights.intensities[:, None, :]
+    np.testing.assert_allclose(BRDF.lambert().shade(normals, lights.directions,
+                                                    lights.intensities), expected, atol=1e-12)
+    assert BRDF.lambert().is_lambert and not GLOSSY.is_lambert
+
+
+def test_fit_recovers_a_known_finish(lights):
+    ball = synth.sphere_surface(61, 28, bands=3)
+    inside = ball.mask
+    rng = np.random.default_rng(1)
+    albedo = rng.uniform(0.3, 0.9, (int(inside.sum()), 3))  # per-pixel colour
+    observed = GLOSSY.shade(ball.normals[inside], lights.directions,
+                            lights.intensities) * albedo[None]
+    usable = observed > 1e-6
+    fitted, rms = fit_brdf(observed, ball.normals[inside], lights.directions,
+                           lights.intensities, usable)
+    assert rms < 0.02
+    np.testing.assert_allclose(fitted.falloff[1:], GLOSSY.falloff[1:], atol=0.03)
+    np.testing.assert_allclose(fitted.specular, GLOSSY.specular, rtol=0.3)
+    assert 150 <= fitted.shininess <= 600  # the grid's neighbours of 300
+
+
+def test_fit_of_a_matte_finish_is_lambert(lights):
+    ball = synth.sphere_surface(41, 18, bands=3)
+    observed = BRDF.lambert().shade(ball.normals[ball.mask], lights.directions,
+                                    lights.intensities) * 0.5
+    fitted, rms = fit_brdf(observed, ball.normals[ball.mask], lights.directions,
+                           lights.intensities, observed > 1e-6)
+    assert rms < 1e-3
+    np.testing.assert_allclose(fitted.falloff[1:], 1.0, atol=0.01)
+    assert max(fitted.specular) < 1e-3
+
+
+def test_fitted_virtual_gauge_beats_lambert_on_a_glossy_scene(lights):
+    scene = synth.smiley_surface(96)
+    stack = _render(scene, lights, GLOSSY, noise=0.002)
+    options = Options(read_noise=0.002, gain=0.0)
+    fixed = dict(gauge_noise=NoiseModel(read=0.0, gain=0.0), mask=scene.mask)
+
+    def error(brdf):
+        gauge = Gauge.virtual(lights, radius=60, bands=3, brdf=brdf)
+        result = reconstruct(stack, gauge.stack, gauge, options, max_residual=None, **fixed)
+        solved = result.solved & scene.mask
+        assert solved.sum() > 0.98 * scene.mask.sum()
+        return float(np.mean(angular_error(result.normals[solved], scene.normals[solved])))
+
+    brdf, history = fit_scene_brdf(stack, lights, options, mask=scene.mask, radius=60)
+    assert len(history) == 2 and history[-1]["rms_relative"] <= history[0]["rms_relative"]
+    lambert, fitted, truth = error(BRDF.lambert()), error(brdf), error(GLOSSY)
+    assert fitted < 0.5 * lambert
+    assert fitted < truth + 0.4  # close to the gauge rendered with the true finish
+
+
+def test_bad_brdf_values_are_refused():
+    with pytest.raises(InputError, match="falloff needs 8 values"):
+        BRDF(falloff=(1.0, 1.0))
+    with pytest.raises(InputError, match="finite and >= 0"):
+        BRDF(specular=(-0.1,))
+    with pytest.raises(InputError, match="brdf: expected 'fitted' or 'lambert'"):
+        Options(brdf="phong")
+    assert len(DIFFUSE_KNOTS) == len(BRDF().falloff)
+
+
+@pytest.mark.parametrize("m", [5, 64, 65, 96, 130])
+def test_light_masks_round_trip(m):
+    rng = np.random.default_rng(m)
+    flags = rng.random((7, 3, m)) < 0.2
+    masks = light_masks.from_bool(flags)
+    assert masks.shape == (7, 3, light_masks.words(m)) and masks.dtype == np.uint64
+    np.testing.assert_array_equal(light_masks.to_bool(masks, m), flags)
+    np.testing.assert_array_equal(light_masks.count(masks), flags.sum(axis=-1))
+    np.testing.assert_array_equal(light_masks.is_empty(masks), ~flags.any(axis=-1))
+    picked = tuple(int(i) for i in np.flatnonzero(flags[2, 1]))
+    assert light_masks.lights(masks[2, 1]) == picked
+    np.testing.assert_array_equal(light_masks.of_lights(picked, m), masks[2, 1])
+
+
+def test_clipped_lights_past_64_images_are_dropped_not_refused():
+    m = 72
+    lighting = synth.ring_lights(m, 45.0)
+    scene = synth.smiley_surface(48)
+    ball = synth.sphere_surface(81, 38)
+    stack = synth.render(scene, lighting)
+    stack[68] *= 4.0  # image 68 saturates over much of the scene
+    clipped = (stack[68] >= 1.0).all(axis=-1) & scene.mask
+    assert clipped.sum() > 50
+    stack = np.minimum(stack, 1.0)
+    result = reconstruct(stack, synth.render(ball, lighting),
+                         Gauge.from_sphere((81, 81), 40, 40, 38), mask=scene.mask,
+                         clip_level=1.0, read_noise=0.001, gain=0.0)
+    assert result.solved[clipped].all()
+    dropped = light_masks.to_bool(result.dropped_lights[clipped], m)
+    assert dropped[:, 68].all() and dropped.sum(axis=1).max() <= 2
+    errors = angular_error(result.normals[clipped], scene.normals[clipped])
+    assert np.median(errors) < 1.0
