@@ -43,11 +43,11 @@ SCENE_FITS = 2
 DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 #: Shininess values tried (Blinn-Phong exponents; 10,000 is a highlight about
 #: 1 degree wide), then SHININESS_STEPS halvings of the (logarithmic) step
-#: around the best.
+#: around the best; each joint round (below) tries the best and its neighbours.
 SHININESS_GRID = tuple(float(v) for v in np.geomspace(4.0, 10000.0, 10))
 SHININESS_STEPS = 2
 #: Pixels of the scene the fit uses (a fixed random sample of the solved ones).
-FIT_PIXELS = 4000
+FIT_PIXELS = 2500
 #: Observations whose cosine of incidence at the estimated normal is below this
 #: are left out: attached-shadow boundaries are where normal errors matter most.
 MIN_FIT_COSINE = 0.02
@@ -307,12 +307,12 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
             return fits[shininess][2]
 
         shininess = min(grid, key=fit_at)
-        for _ in range(SHININESS_STEPS):
+        for _ in range(SHININESS_STEPS if round_ == 0 else 0):
             step /= 2.0
             shininess = min((shininess * np.exp(-step), shininess, shininess * np.exp(step)),
                             key=fit_at)
-        # Later rounds search around this round's best, at the last step.
-        grid, step = (shininess,), 2.0 * step
+        # Later rounds try this round's best and its neighbours at the last step.
+        grid = (shininess * np.exp(-step), shininess, shininess * np.exp(step))
         falloff, specular, cost = fits[shininess]
         brdf = BRDF(tuple(falloff), tuple(specular), shininess)
     if not np.any(brdf.specular):
@@ -412,14 +412,18 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
         target = obs - diffuse_basis[..., -1, None] * albedo[None]
         a2w = albedo[None] ** 2 * weight  # (m, N, c)
         aw_t = albedo[None] * weight * target
+        rows = free.reshape(-1, k - 1)
+        lobe_rows = lobe.reshape(-1, 1)
+        a2w_rows = a2w.reshape(-1, c)
         normal = np.empty((k - 1 + c, k - 1 + c))
-        normal[:k - 1, :k - 1] = np.einsum("mnj,mnl,mn->jl", free, free, a2w.sum(-1))
-        cross = np.einsum("mnj,mn,mnb->jb", free, lobe, a2w)
+        normal[:k - 1, :k - 1] = (rows * a2w_rows.sum(axis=1, keepdims=True)).T @ rows
+        cross = rows.T @ (lobe_rows * a2w_rows)
         normal[:k - 1, k - 1:] = cross
         normal[k - 1:, :k - 1] = cross.T
-        normal[k - 1:, k - 1:] = np.diag(np.einsum("mn,mnb->b", lobe ** 2, a2w))
-        right = np.concatenate([np.einsum("mnj,mn->j", free, aw_t.sum(-1)),
-                                np.einsum("mn,mnb->b", lobe, aw_t)])
+        normal[k - 1:, k - 1:] = np.diag((lobe_rows ** 2 * a2w_rows).sum(axis=0))
+        aw_rows = aw_t.reshape(-1, c)
+        right = np.concatenate([rows.T @ aw_rows.sum(axis=1),
+                                (lobe_rows * aw_rows).sum(axis=0)])
         total = weight.sum()
         normal /= total
         right /= total

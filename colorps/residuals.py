@@ -69,19 +69,12 @@ def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:
         Mean over usable neighbours of |g_k(q) - g_k(neighbour)|^2 (0 where
         a pixel has none).
     """
-    total = np.zeros(signatures.shape[:3])
-    count = np.zeros(signatures.shape[:2])
-    for axis in (0, 1):
-        for step in (1, -1):
-            moved = np.roll(signatures, step, axis=axis)
-            ok = usable & np.roll(usable, step, axis=axis)
-            edge = [slice(None)] * 2
-            edge[axis] = slice(0, 1) if step == 1 else slice(-1, None)
-            ok[tuple(edge)] = False  # no wrap-around
-            diff = ((signatures - moved).astype(np.float64) ** 2).sum(axis=-1)
-            total += np.where(ok[..., None], diff, 0.0)
-            count += ok
-    return total / np.maximum(count, 1)[..., None]
+    from . import _pixel_kernels
+
+    out = np.empty(signatures.shape[:3])
+    _pixel_kernels.neighbour_steps(np.ascontiguousarray(signatures, dtype=np.float32),
+                                   np.ascontiguousarray(usable, dtype=bool), out)
+    return out
 
 
 def match_residual(scene_sig, gauge_sig, scene_norm2, gauge_norm2, scene_var, gauge_var,

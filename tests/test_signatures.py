@@ -96,3 +96,20 @@ def test_bad_stacks():
         compute_signatures(np.ones((3, 2)))
     with pytest.raises(InputError, match="empty"):
         compute_signatures(np.ones((0, 2, 2, 3)))
+
+
+def test_table_resolution_matches_brute_force():
+    from colorps.residuals import table_resolution
+
+    rng = np.random.default_rng(4)
+    sig = rng.normal(size=(9, 11, 2, 5)).astype(np.float32)
+    usable = rng.random((9, 11)) < 0.7
+    expected = np.zeros((9, 11, 2))
+    for y in range(9):
+        for x in range(11):
+            steps = [((sig[y, x] - sig[ny, nx]).astype(np.float64) ** 2).sum(axis=-1)
+                     for ny, nx in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1))
+                     if 0 <= ny < 9 and 0 <= nx < 11 and usable[y, x] and usable[ny, nx]]
+            if steps:
+                expected[y, x] = np.mean(steps, axis=0)
+    np.testing.assert_allclose(table_resolution(sig, usable), expected, rtol=1e-6)
