@@ -87,6 +87,20 @@ def test_cli_with_a_light_file(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["virtual_gauge"] and report["statistics"]["solved"] > 0
     assert abs(report["statistics"]["noise"]["read"] - 0.002) < 0.001  # from the scene
+    # The synthetic scene is matte: the fitted finish must come out close to Lambert.
+    assert len(report["brdf_fits"]) == 2
+    assert max(report["brdf"]["specular"]) < 0.01
+    assert np.allclose(report["brdf"]["falloff"][2:], 1.0, atol=0.05)
+    assert main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
+                 str(data / "lights.txt"), "--tile", "16", "--read-noise", "0.002",
+                 "--gain", "0", "--out", str(tmp_path / "tiled")]) == 1
+    assert "needs --brdf lambert" in capsys.readouterr().err
+    assert main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
+                 str(data / "lights.txt"), "--tile", "16", "--read-noise", "0.002",
+                 "--gain", "0", "--brdf", "lambert", "--mask", str(data / "mask.png"),
+                 "--out", str(tmp_path / "tiled"), "--quiet"]) == 0
+    tiled = json.loads((tmp_path / "tiled" / "report.json").read_text())
+    assert tiled["brdf"]["specular"] == [0.0] and tiled["brdf_fits"] is None
     with pytest.raises(SystemExit) as stop:
         main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
               str(data / "lights.txt"), "--sphere", "auto", "--out", str(tmp_path / "o2")])
