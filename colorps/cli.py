@@ -8,11 +8,12 @@ import signal
 import sys
 import warnings
 from dataclasses import fields
+from pathlib import Path
 
 import numpy as np
 
 from . import __version__
-from .errors import ColorPSError
+from .errors import ColorPSError, InputError
 from .gauge import DEFAULT_ALBEDO
 from .options import FLOAT_DARK_LEVEL, Options
 from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
@@ -97,6 +98,83 @@ def _shown(value) -> str:
     return "none" if value is None else str(value)
 
 
+def _add_options(parser: argparse.ArgumentParser) -> None:
+    """The flags of Options' fields: dest is the field, defaults are Options()'s."""
+    parser.add_argument("--brdf", choices=("fitted", "lambert"), default=_DEFAULTS.brdf,
+                        help="with --lights: the finish the gauge is rendered with (fitted: "
+                             "diffuse falloff + highlight fitted to the scene)")
+    parser.add_argument("--mode", choices=("colour", "mono"), default=_DEFAULTS.mode,
+                        help="signatures from all bands or from one band")
+    parser.add_argument("--band", type=_or_words(_channel, luminance="luminance"),
+                        default=_DEFAULTS.band, metavar="luminance|K",
+                        help="mono mode: 'luminance' (RGB) or a channel index "
+                             "(default: luminance for RGB, else channel 0)")
+    parser.add_argument("--colourspace", default=_DEFAULTS.colourspace, metavar="NAME",
+                        help="mono mode: colour-science name of the RGB colourspace of the "
+                             "luminance")
+    parser.add_argument("--threads", type=_positive_int, default=_DEFAULTS.threads,
+                        help="lookup threads (default: all cores)")
+    parser.add_argument("--grid-n", type=_or_words(_positive_int, auto="auto"),
+                        default=_DEFAULTS.grid_n, metavar="N|auto",
+                        help="bucket grid size (default: round(2 sqrt(table size)))")
+    parser.add_argument("--encoding", choices=("auto", "linear", "srgb"),
+                        default=_DEFAULTS.encoding,
+                        help="pixel encoding: auto = integer formats sRGB, float formats linear")
+    parser.add_argument("--clip-level", type=_or_words(_positive_float, auto="auto", none=None),
+                        default=_DEFAULTS.clip_level, metavar="V|auto|none",
+                        help="linear value at or above which a measurement is clipped; auto: "
+                             "the top code of integer files, none for float files "
+                             f"(default: {_shown(_DEFAULTS.clip_level)})")
+    parser.add_argument("--dark-level", type=_or_words(_positive_float, auto="auto"),
+                        default=_DEFAULTS.dark_level, metavar="V|auto",
+                        help="linear noise floor of one measurement; bands whose OV norm is "
+                             "below V sqrt(m) are too dark; auto: 2 codes of integer files, "
+                             f"{FLOAT_DARK_LEVEL:.2g} for float files "
+                             f"(default: {_shown(_DEFAULTS.dark_level)})")
+    parser.add_argument("--read-noise", type=_or_words(_non_negative_float, auto="auto"),
+                        default=_DEFAULTS.read_noise, metavar="V|auto",
+                        help="noise model: read-noise floor of one measurement (linear); "
+                             "auto: fitted to the gauge's pixel scatter "
+                             f"(default: {_shown(_DEFAULTS.read_noise)})")
+    parser.add_argument("--gain", type=_or_words(_non_negative_float, auto="auto"),
+                        default=_DEFAULTS.gain, metavar="G|auto",
+                        help="noise model: shot-noise variance per unit linear signal; "
+                             f"auto: fitted to the gauge (default: {_shown(_DEFAULTS.gain)})")
+    parser.add_argument("--no-band-weights", dest="band_weights", action="store_false",
+                        help="colour mode: weigh every band alike, however dark")
+    parser.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
+                        help="do not re-solve shadowed or highlighted pixels from the "
+                             "remaining lights")
+    parser.add_argument("--max-dropped-lights", type=_non_negative_int,
+                        default=_DEFAULTS.max_dropped_lights, metavar="K",
+                        help="most lights dropped from one pixel (at least 3 remain)")
+    parser.add_argument("--max-residual", type=_or_words(_positive_float, none=None),
+                        default=_DEFAULTS.max_residual, metavar="R|none",
+                        help="largest match residual of a solved pixel, in units of the "
+                             "noise model's expected residual (quality.exr); worse matches "
+                             "are 'no good match' "
+                             f"(default: {_shown(_DEFAULTS.max_residual)})")
+    parser.add_argument("--max-distance", type=_or_words(_positive_float, none=None),
+                        default=_DEFAULTS.max_distance, metavar="D|none",
+                        help="also refuse pixels whose plain signature distance per band "
+                             "exceeds D (colorps 0.1's threshold) "
+                             f"(default: {_shown(_DEFAULTS.max_distance)})")
+    parser.add_argument("--refine", choices=("quadratic", "none"), default=_DEFAULTS.refine,
+                        help="refine normals past the gauge's pixel grid (quadratic model of "
+                             "the gauge around each match), with uncertainty.exr")
+    parser.add_argument("--max-input-gib", type=_positive_float, default=_DEFAULTS.max_input_gib,
+                        metavar="G", help="refuse a stack that would take more than G GiB "
+                             "decoded (checked from the headers, before decoding)")
+    parser.add_argument("--tile", type=_positive_int, default=_DEFAULTS.tile, metavar="ROWS",
+                        help="process the scene in bands of ROWS rows read from the files when "
+                             "needed (same results; bounded memory for the matching)")
+    parser.add_argument("--no-height", dest="height", action="store_false",
+                        help="skip the height map, relief and overview pictures")
+    parser.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
+                        help="also write a mesh of the height field with albedo colours")
+
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``colorps`` argument parser (sub-commands reconstruct, integrate, demo, synth)."""
     parser = argparse.ArgumentParser(
@@ -120,89 +198,34 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --lights: one 'r g b' (or one value) per image")
     rec.add_argument("--virtual-radius", type=_positive_float, default=100.0, metavar="R",
                      help="with --lights: radius (px) of the rendered gauge sphere")
-    rec.add_argument("--brdf", choices=("fitted", "lambert"), default=_DEFAULTS.brdf,
-                     help="with --lights: the finish the gauge is rendered with (fitted: "
-                          "diffuse falloff + highlight fitted to the scene)")
     rec.add_argument("--gauge-albedo", type=_albedo, default=DEFAULT_ALBEDO, metavar="A|R,G,B",
                      help="albedo of the gauge, one value or one per band")
     rec.add_argument("--out", required=True, metavar="DIR", help="output folder")
     rec.add_argument("--mask", metavar="FILE", help="scene mask image (non-zero = solve)")
     rec.add_argument("--overwrite", action="store_true", help="replace existing results")
     rec.add_argument("--quiet", action="store_true", help="no progress bar or summary")
-    # Options: dest is the Options field; defaults are Options()'s.
-    rec.add_argument("--mode", choices=("colour", "mono"), default=_DEFAULTS.mode,
-                     help="signatures from all bands or from one band")
-    rec.add_argument("--band", type=_or_words(_channel, luminance="luminance"),
-                     default=_DEFAULTS.band, metavar="luminance|K",
-                     help="mono mode: 'luminance' (RGB) or a channel index "
-                          "(default: luminance for RGB, else channel 0)")
-    rec.add_argument("--colourspace", default=_DEFAULTS.colourspace, metavar="NAME",
-                     help="mono mode: colour-science name of the RGB colourspace of the "
-                          "luminance")
-    rec.add_argument("--threads", type=_positive_int, default=_DEFAULTS.threads,
-                     help="lookup threads (default: all cores)")
-    rec.add_argument("--grid-n", type=_or_words(_positive_int, auto="auto"),
-                     default=_DEFAULTS.grid_n, metavar="N|auto",
-                     help="bucket grid size (default: round(2 sqrt(table size)))")
-    rec.add_argument("--encoding", choices=("auto", "linear", "srgb"),
-                     default=_DEFAULTS.encoding,
-                     help="pixel encoding: auto = integer formats sRGB, float formats linear")
-    rec.add_argument("--clip-level", type=_or_words(_positive_float, auto="auto", none=None),
-                     default=_DEFAULTS.clip_level, metavar="V|auto|none",
-                     help="linear value at or above which a measurement is clipped; auto: "
-                          "the top code of integer files, none for float files "
-                          f"(default: {_shown(_DEFAULTS.clip_level)})")
-    rec.add_argument("--dark-level", type=_or_words(_positive_float, auto="auto"),
-                     default=_DEFAULTS.dark_level, metavar="V|auto",
-                     help="linear noise floor of one measurement; bands whose OV norm is "
-                          "below V sqrt(m) are too dark; auto: 2 codes of integer files, "
-                          f"{FLOAT_DARK_LEVEL:.2g} for float files "
-                          f"(default: {_shown(_DEFAULTS.dark_level)})")
-    rec.add_argument("--read-noise", type=_or_words(_non_negative_float, auto="auto"),
-                     default=_DEFAULTS.read_noise, metavar="V|auto",
-                     help="noise model: read-noise floor of one measurement (linear); "
-                          "auto: fitted to the gauge's pixel scatter "
-                          f"(default: {_shown(_DEFAULTS.read_noise)})")
-    rec.add_argument("--gain", type=_or_words(_non_negative_float, auto="auto"),
-                     default=_DEFAULTS.gain, metavar="G|auto",
-                     help="noise model: shot-noise variance per unit linear signal; "
-                          f"auto: fitted to the gauge (default: {_shown(_DEFAULTS.gain)})")
-    rec.add_argument("--no-band-weights", dest="band_weights", action="store_false",
-                     help="colour mode: weigh every band alike, however dark")
-    rec.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
-                     help="do not re-solve shadowed or highlighted pixels from the "
-                          "remaining lights")
-    rec.add_argument("--max-dropped-lights", type=_non_negative_int,
-                     default=_DEFAULTS.max_dropped_lights, metavar="K",
-                     help="most lights dropped from one pixel (at least 3 remain)")
-    rec.add_argument("--max-residual", type=_or_words(_positive_float, none=None),
-                     default=_DEFAULTS.max_residual, metavar="R|none",
-                     help="largest match residual of a solved pixel, in units of the "
-                          "noise model's expected residual (quality.exr); worse matches "
-                          "are 'no good match' "
-                          f"(default: {_shown(_DEFAULTS.max_residual)})")
-    rec.add_argument("--max-distance", type=_or_words(_positive_float, none=None),
-                     default=_DEFAULTS.max_distance, metavar="D|none",
-                     help="also refuse pixels whose plain signature distance per band "
-                          "exceeds D (colorps 0.1's threshold) "
-                          f"(default: {_shown(_DEFAULTS.max_distance)})")
-    rec.add_argument("--refine", choices=("quadratic", "none"), default=_DEFAULTS.refine,
-                     help="refine normals past the gauge's pixel grid (quadratic model of "
-                          "the gauge around each match), with uncertainty.exr")
-    rec.add_argument("--max-input-gib", type=_positive_float, default=_DEFAULTS.max_input_gib,
-                     metavar="G", help="refuse a stack that would take more than G GiB "
-                                       "decoded (checked from the headers, before decoding)")
-    rec.add_argument("--tile", type=_positive_int, default=_DEFAULTS.tile, metavar="ROWS",
-                     help="process the scene in bands of ROWS rows read from the files when "
-                          "needed (same results; bounded memory for the matching)")
+    _add_options(rec)
     rec.add_argument("--scheduler", default=None, metavar="ADDRESS",
                      help="run the tiles on a Dask cluster: a scheduler address "
                           "(tcp://host:8786) or 'local' for a local cluster; needs "
                           "pip install 'colorps[dask]' (default: tiles run in this process)")
-    rec.add_argument("--no-height", dest="height", action="store_false",
-                     help="skip the height map, relief and overview pictures")
-    rec.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
-                     help="also write a mesh of the height field with albedo colours")
+
+    bat = sub.add_parser("batch", formatter_class=_FORMATTER,
+                         help="reconstruct many captures (folders or a manifest), one per "
+                              "task, locally or on a Dask cluster")
+    bat.add_argument("folders", nargs="*", metavar="FOLDER",
+                     help="capture folders: scene_* images, gauge_* images or a light "
+                          "file, optional mask.png (see colorps.batch)")
+    bat.add_argument("--manifest", metavar="FILE.json",
+                     help="a JSON list of captures instead of (or besides) folders")
+    bat.add_argument("--out", required=True, metavar="DIR",
+                     help="output folder: one sub-folder per capture, and batch.json")
+    bat.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run the captures as tasks on a Dask cluster: a scheduler "
+                          "address or 'local' (default: one after the other here)")
+    bat.add_argument("--overwrite", action="store_true", help="replace existing results")
+    bat.add_argument("--quiet", action="store_true", help="no progress bar or table")
+    _add_options(bat)
 
     integ = sub.add_parser("integrate", formatter_class=_FORMATTER,
                            help="integrate a normal map (normal.exr) into a height map")
@@ -311,6 +334,8 @@ def _run(args, previous_sigterm) -> int:
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
                       f"{s.residual_median or 0:.2f}, {s.seconds.total:.2f} s); results in "
                       f"{args.out}/")
+        elif args.command == "batch":
+            return _batch(args)
         elif args.command == "integrate":
             z = integrate_file(args.normals, args.out, mask_path=args.mask,
                                weights_path=args.weights, method=args.method, mesh=args.mesh,
@@ -356,6 +381,34 @@ def _run(args, previous_sigterm) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous_sigterm)
     return 0
+
+
+def _batch(args) -> int:
+    """colorps batch: every capture, a table, exit code 1 if any failed."""
+    from .batch import find_capture, read_manifest, run_batch
+    from .pipeline import dask_client
+
+    captures = [find_capture(folder) for folder in args.folders]
+    if args.manifest:
+        captures += read_manifest(args.manifest)
+    if not captures:
+        raise InputError("batch: give capture folders or --manifest")
+    options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
+    with dask_client(args.scheduler) as client:
+        outcomes = run_batch(captures, args.out, options, client=client,
+                             overwrite=args.overwrite, progress=not args.quiet)
+    failed = [o for o in outcomes if not o.ok]
+    if not args.quiet:
+        width = max(len(o.name) for o in outcomes)
+        for o in outcomes:
+            state = (f"solved {o.solved} of {o.pixels} px in {o.seconds:.1f} s" if o.ok
+                     else f"FAILED: {o.error}")
+            print(f"{o.name:{width}s}  {state}")
+        print(f"{len(outcomes) - len(failed)} of {len(outcomes)} captures reconstructed; "
+              f"summary in {Path(args.out) / 'batch.json'}")
+    for o in failed:
+        print(f"colorps: error: {o.name}: {o.error}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

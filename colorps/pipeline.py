@@ -20,7 +20,7 @@ from .gauge import DEFAULT_ALBEDO
 from .options import Options
 from .reconstruct import Reconstruction
 
-__all__ = ["reconstruct_files", "integrate_file", "calibrate_lights_files"]
+__all__ = ["reconstruct_files", "integrate_file", "calibrate_lights_files", "dask_client"]
 
 #: A normal map's finite pixels must be unit vectors within this (half-float
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
@@ -173,7 +173,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
 
     levels = (gauge_levels.clip_level, gauge_levels.dark_level)
     if tiled:
-        with _dask_client(scheduler) as client:
+        with dask_client(scheduler) as client:
             result = reconstruct_tiled(scene, gauge_stack, gauge, options, tile=options.tile,
                                        mask=mask, noise=scene_noise, gauge_noise=gauge_noise,
                                        gauge_levels=levels, client=client, progress=progress)
@@ -210,8 +210,9 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
 
 
 @contextlib.contextmanager
-def _dask_client(scheduler):
-    """None (no scheduler), the given client, or one for an address / "local"."""
+def dask_client(scheduler):
+    """A context of a Dask client: None (no scheduler), the given client, or one
+    connected to a scheduler address / a local cluster started for "local"."""
     if scheduler is None or not isinstance(scheduler, str):
         yield scheduler
         return
