@@ -34,10 +34,24 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["integrate", "slopes", "weights_from_quality", "METHODS"]
+__all__ = ["integrate", "slopes", "weights_from_quality", "METHODS", "DEFAULT_TILE"]
 
 #: Names of the integration methods of :func:`integrate`.
 METHODS = ("poisson", "dct")
+
+# ---------------------------------------------------------------- tuning
+#: Tiled integration (``integrate(..., tile=T)``): the coarse level has at most
+#: COARSE_PIXELS pixels; each tile is solved with TILE_MARGIN extra pixels on
+#: every side, whose outer ring is held to known heights (penalty
+#: ANCHOR_WEIGHT times the mean pair weight).
+COARSE_PIXELS = 2 ** 20
+TILE_MARGIN = 48
+#: Tile side of a tiled ``colorps reconstruct`` run's integration (pixels).
+DEFAULT_TILE = 1024
+ANCHOR_WEIGHT = 1e3
+#: (A second pass holding the rings to the first pass's heights, an overlapping
+#: Schwarz step, left the difference to the untiled solve unchanged: it comes
+#: from the coarse level's low frequencies.)
 
 
 def slopes(normals, *, min_nz: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +104,8 @@ def _edges(mask: np.ndarray):
 
 
 def _validate(normals, mask, weights):
-    n = np.asarray(normals, dtype=np.float64)
+    n = np.asarray(normals)
+    n = n if n.dtype in (np.float32, np.float64) else n.astype(np.float64)
     if n.ndim != 3 or n.shape[2] != 3:
         raise InputError(f"normals: expected shape (H, W, 3), got {n.shape}")
     finite = np.isfinite(n).all(axis=-1)
@@ -109,12 +124,12 @@ def _validate(normals, mask, weights):
                              f"{n.shape[:2]}")
         if not np.all(np.isfinite(weights[mask])) or np.any(weights[mask] < 0):
             raise InputError("weights: must be finite and >= 0 inside the mask")
-    return np.where(finite[..., None], n, 0.0), mask, weights
+    return n, mask, weights
 
 
 def integrate(normals, mask=None, *, weights=None,
               method: Literal["poisson", "dct"] = "poisson", min_nz: float = 0.05,
-              tol: float = 1e-6) -> np.ndarray:
+              tol: float = 1e-6, tile: int | None = None) -> np.ndarray:
     """Integrate a normal map into a height map (pixel units, orthographic).
 
     Parameters
@@ -138,6 +153,14 @@ def integrate(normals, mask=None, *, weights=None,
         Lower clamp of nz when converting normals to slopes.
     tol : float, optional
         Relative residual tolerance of the iterative solver.
+    tile : int, optional
+        "poisson" only: integrate hierarchically, for images too large to
+        solve at once. A coarse level (at most COARSE_PIXELS pixels, slopes
+        averaged over blocks) is solved whole; then each tile x tile block is
+        solved with TILE_MARGIN more pixels around it, whose outer ring is held
+        to the upsampled coarse heights. Memory is that of one tile plus the
+        coarse level; heights differ from the untiled solve by a small fraction
+        of the relief (docs/benchmarks.md). None: one solve.
 
     Returns
     -------
@@ -159,12 +182,20 @@ def integrate(normals, mask=None, *, weights=None,
     """
     if method not in METHODS:
         raise InputError(f"method: expected one of {METHODS}, got {method!r}")
+    if tile is not None and (isinstance(tile, bool) or not isinstance(tile, (int, np.integer))
+                             or tile < 16):
+        raise InputError(f"tile: expected a tile side of at least 16 pixels, got {tile!r}")
+    if tile is not None and method != "poisson":
+        raise InputError("tile: only method 'poisson' integrates in tiles")
     normals, mask, weights = _validate(normals, mask, weights)
-    gx, grow = slopes(normals, min_nz=min_nz)
     h, w = mask.shape
     height = np.full((h, w), np.nan)
     if not mask.any():
         return height
+    if tile is not None and max(h, w) > tile:
+        height = _integrate_tiled(normals, mask, weights, tol, int(tile), min_nz)
+        return _zero_mean_parts(height, mask)
+    gx, grow = slopes(np.where(mask[..., None], normals, 0.0), min_nz=min_nz)
     if method == "dct":
         if not mask.all() or weights is not None:
             raise InputError("method 'dct' needs a full rectangle (every normal finite, "
@@ -196,9 +227,11 @@ def _integrate_dct(gx: np.ndarray, grow: np.ndarray) -> np.ndarray:
     return idctn(coeffs, type=2, norm="ortho")
 
 
-def _integrate_poisson(gx, grow, mask, weights, tol) -> np.ndarray:
+def _integrate_poisson(gx, grow, mask, weights, tol, anchor=None) -> np.ndarray:
     """Weighted masked least squares: sparse normal equations, AMG-preconditioned CG.
 
+    ``anchor``, optional (H, W) heights (NaN: free): pixels where it is finite
+    are held to it (a penalty ANCHOR_WEIGHT times the mean pair weight).
     Returns the heights of the mask pixels, in row-major order.
     """
     import pyamg
@@ -226,11 +259,87 @@ def _integrate_poisson(gx, grow, mask, weights, tol) -> np.ndarray:
     degree = np.bincount(a, wt, n) + np.bincount(b, wt, n)
     rhs = np.bincount(b, wt * target, n) - np.bincount(a, wt * target, n)
     diag = degree + 1e-9 * max(wt.mean(), 1e-12)
+    if anchor is not None:
+        held = anchor.ravel()[inside]
+        pull = np.where(np.isfinite(held), ANCHOR_WEIGHT * max(wt.mean(), 1e-12), 0.0)
+        diag = diag + pull
+        rhs = rhs + pull * np.nan_to_num(held)
     lap = sp.coo_matrix((np.concatenate([-wt, -wt, diag]),
                          (np.concatenate([a, b, np.arange(n)]),
                           np.concatenate([b, a, np.arange(n)]))), shape=(n, n)).tocsr()
     solver = pyamg.ruge_stuben_solver(lap, max_coarse=500)  # classical AMG: fast setup
     return solver.solve(rhs, tol=tol, accel="cg", maxiter=400)
+
+
+def _integrate_tiled(normals, mask, weights, tol, tile, min_nz) -> np.ndarray:
+    """Hierarchical integration: a coarse solve, then tiles anchored to it."""
+    from scipy import ndimage
+
+    h, w = mask.shape
+    factor = max(2, int(np.ceil(np.sqrt(mask.sum() / COARSE_PIXELS))))
+    hc, wc = -(-h // factor), -(-w // factor)
+    # Block sums of weight, weighted slopes and mask pixels, a band of blocks at a time.
+    sums = np.zeros((3, hc, wc))
+    count = np.zeros((hc, wc))
+    for r in range(hc):
+        rows = slice(r * factor, min((r + 1) * factor, h))
+        inside = mask[rows]
+        weight = inside * (1.0 if weights is None else weights[rows])
+        gx, grow = slopes(np.where(inside[..., None], normals[rows], 0.0), min_nz=min_nz)
+        pad = wc * factor - w
+        for k, value in enumerate((weight, weight * gx, weight * grow)):
+            sums[k, r] = np.pad(value, ((0, 0), (0, pad))).reshape(
+                value.shape[0], wc, factor).sum(axis=(0, 2))
+        count[r] = np.pad(inside, ((0, 0), (0, pad))).reshape(
+            inside.shape[0], wc, factor).sum(axis=(0, 2))
+    coarse_mask = (count > 0) & (sums[0] > 0)
+    mean_weight = np.divide(sums[0], count, out=np.zeros_like(count), where=count > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # Slopes per coarse step: factor fine pixels.
+        cgx = np.where(coarse_mask, factor * sums[1] / sums[0], 0.0)
+        cgrow = np.where(coarse_mask, factor * sums[2] / sums[0], 0.0)
+    coarse = np.full((hc, wc), np.nan)
+    coarse[coarse_mask] = _integrate_poisson(cgx, cgrow, coarse_mask,
+                                             None if weights is None else mean_weight, tol)
+    # Coarse heights at fine pixel centres (block centres at factor i + (factor-1)/2).
+    def upsampled(rows, cols):
+        yy, xx = np.meshgrid((rows - (factor - 1) / 2.0) / factor,
+                             (cols - (factor - 1) / 2.0) / factor, indexing="ij")
+        value = ndimage.map_coordinates(np.nan_to_num(coarse), [yy, xx], order=1,
+                                        mode="nearest")
+        known = ndimage.map_coordinates(coarse_mask.astype(float), [yy, xx], order=1,
+                                        mode="nearest")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(known > 0.25, value / known, np.nan)
+
+    height = np.full((h, w), np.nan)
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
+            if not mask[y0:y1, x0:x1].any():
+                continue
+            a0, b0 = max(0, y0 - TILE_MARGIN), max(0, x0 - TILE_MARGIN)
+            a1, b1 = min(h, y1 + TILE_MARGIN), min(w, x1 + TILE_MARGIN)
+            inside = mask[a0:a1, b0:b1]
+            ring = np.zeros(inside.shape, dtype=bool)
+            if a0 > 0:
+                ring[0] = True
+            if a1 < h:
+                ring[-1] = True
+            if b0 > 0:
+                ring[:, 0] = True
+            if b1 < w:
+                ring[:, -1] = True
+            anchor = np.full(inside.shape, np.nan)
+            anchor[ring] = upsampled(np.arange(a0, a1), np.arange(b0, b1))[ring]
+            gx, grow = slopes(np.where(inside[..., None], normals[a0:a1, b0:b1], 0.0),
+                              min_nz=min_nz)
+            solved = np.full(inside.shape, np.nan)
+            solved[inside] = _integrate_poisson(
+                gx, grow, inside, None if weights is None else weights[a0:a1, b0:b1], tol,
+                anchor)
+            height[y0:y1, x0:x1] = solved[y0 - a0:y1 - a0, x0 - b0:x1 - b0]
+    return height
 
 
 def _zero_mean_parts(height: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -79,7 +79,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     from .gauge import Gauge, find_sphere
     from .lights import read_lights
     from .noise import NoiseModel, estimate_noise
-    from .integrate import integrate, weights_from_quality
+    from .integrate import DEFAULT_TILE, integrate, weights_from_quality
     from .io import (check_stack_files, expand_paths, input_levels, noise_base, read_image,
                      read_mask, read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
@@ -187,8 +187,10 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     _check_solved(result, scene_paths, gauge_paths, mask_path)
     if options.height:
         t0 = time.perf_counter()
+        # A tiled run integrates in tiles too (memory of one tile + a coarse level).
         height = integrate(result.normals, result.solved,
-                           weights=weights_from_quality(result.quality))
+                           weights=weights_from_quality(result.quality),
+                           tile=DEFAULT_TILE if tiled else None)
         result = result.with_height(height, time.perf_counter() - t0)
 
     report = dict(

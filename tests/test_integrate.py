@@ -155,3 +155,28 @@ def test_reconstruct_writes_height_and_cli_integrate(tmp_path, capsys):
     plain = tmp_path / "plain"
     assert main(args[:-3] + ["--out", str(plain), "--no-height"]) == 0
     assert not (plain / "height.exr").exists()
+
+
+def test_tiled_integration_stays_close_to_one_solve():
+    from colorps import synth
+
+    scene = synth.smiley_surface(300)
+    mask = scene.mask.copy()
+    mask[140:150, :] = False          # two parts, and a hole
+    mask[60:70, 100:120] = False
+    rng = np.random.default_rng(2)
+    weights = rng.uniform(0.2, 1.0, mask.shape)
+    normals = np.where(mask[..., None], scene.normals, np.nan)
+    whole = integrate(normals, mask, weights=weights)
+    tiled = integrate(normals, mask, weights=weights, tile=64)
+    assert np.array_equal(np.isfinite(whole), np.isfinite(tiled))
+    depth = np.nanmax(whole) - np.nanmin(whole)
+    diff = np.abs(whole - tiled)[mask]
+    assert np.sqrt(np.mean(diff ** 2)) < 1e-3 * depth  # the stated tolerance
+    assert diff.max() < 5e-3 * depth
+    # One tile covering the image is the plain solve.
+    np.testing.assert_array_equal(integrate(normals, mask, weights=weights, tile=300), whole)
+    with pytest.raises(InputError, match="tile"):
+        integrate(normals, mask, tile=4)
+    with pytest.raises(InputError, match="only method 'poisson'"):
+        integrate(scene.normals, method="dct", tile=64)
