@@ -62,7 +62,8 @@ def run(command: list[str]) -> tuple[float, int]:
     wall = time.perf_counter() - t0
     child.returncode = os.waitstatus_to_exitcode(status)
     if child.returncode:
-        sys.exit(f"{' '.join(command)} failed:\n{stderr.decode()[-2000:]}")
+        raise RuntimeError(stderr.decode().strip().splitlines()[-1] if stderr.strip()
+                           else f"exit code {child.returncode}")
     return wall, usage.ru_maxrss * 1024  # KiB on Linux
 
 
@@ -82,6 +83,8 @@ def main(argv=None) -> None:
     parser.add_argument("--tile-at", type=int, default=4096,
                         help="sizes from this on also run with --tile (default: 4096)")
     parser.add_argument("--tile", type=int, default=1024)
+    parser.add_argument("--memory-limit", type=float, default=None, metavar="GIB",
+                        help="also run every size with --memory-limit GIB")
     args = parser.parse_args(argv)
     colorps = [sys.executable, "-m", "colorps.cli"]
     rows, previous = [], None
@@ -100,20 +103,31 @@ def main(argv=None) -> None:
             runs = [("colorps", [])]
             if size >= args.tile_at:
                 runs = [(f"colorps --tile {args.tile}", ["--tile", str(args.tile)])]
+            if args.memory_limit:
+                runs.append((f"colorps --memory-limit {args.memory_limit:g}",
+                             ["--memory-limit", str(args.memory_limit)]))
             for label, extra in runs:
                 command = colorps + [
                     "reconstruct", "--scene", str(capture / "scene_*.exr"),
                     "--gauge", str(capture / "gauge_*.exr"), "--sphere", "auto",
                     "--mask", str(capture / "mask.png"), "--out", str(out / "result"),
                     "--overwrite", "--quiet", *extra]
-                wall, peak = measure(command, args.repeat)
-                growth = ("" if previous is None else
+                try:
+                    wall, peak = measure(command, args.repeat)
+                except RuntimeError as refused:
+                    rows.append((f"{size * size / 1e6:.2f}", label, f"{floor_wall:.2f}",
+                                 "refused", "", "", f"{input_bytes / 2**20:.0f}",
+                                 str(refused)))
+                    continue
+                first = label == runs[0][0]  # growth compares the sizes' first runs
+                growth = ("" if previous is None or not first else
                           f"{(peak - previous[1]) / (input_bytes - previous[0]):.2f}")
                 rows.append((f"{size * size / 1e6:.2f}", label, f"{floor_wall:.2f}",
                              f"{wall:.2f}", f"{wall / floor_wall:.1f}",
                              f"{peak / 2**20:.0f}",
                              f"{input_bytes / 2**20:.0f}", growth))
-                previous = (input_bytes, peak)
+                if first:
+                    previous = (input_bytes, peak)
             print(f"{size}: done", file=sys.stderr)
     print(f"\nend to end, {os.cpu_count()} cores, 8 RGB images + 8 gauge images, best of "
           f"{args.repeat}\n")

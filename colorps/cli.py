@@ -168,6 +168,10 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile", type=_positive_int, default=_DEFAULTS.tile, metavar="ROWS",
                         help="process the scene in bands of ROWS rows read from the files when "
                              "needed (same results; bounded memory for the matching)")
+    parser.add_argument("--memory-limit", dest="memory_limit_gib", type=_positive_float,
+                        default=_DEFAULTS.memory_limit_gib, metavar="GIB",
+                        help="choose --tile so the run's estimated peak memory stays under "
+                             "GIB GiB (refused when even small tiles would not fit)")
     parser.add_argument("--no-height", dest="height", action="store_false",
                         help="skip the height map, relief and overview pictures")
     parser.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,

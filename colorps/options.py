@@ -105,6 +105,11 @@ class Options:
         Files only: refuse a stack whose decoded pixels (float32) would take
         more than this many GiB, before decoding any (headers are read first).
         A tiled run checks one tile against it.
+    memory_limit_gib : float or None
+        Files only: choose ``tile`` so that the run's estimated peak memory
+        stays under this many GiB (:func:`colorps.tiles.rows_for_memory`);
+        refuse the run when even the smallest tiles would not fit. None: no
+        limit (ignored when ``tile`` is given).
     brdf : {"fitted", "lambert"}
         Virtual gauges only (``--lights``): the finish the gauge is rendered
         with. "fitted": a diffuse falloff and highlight fitted to the scene's
@@ -143,6 +148,7 @@ class Options:
     max_input_gib: float = 8.0
     brdf: Literal["fitted", "lambert"] = "fitted"
     tile: int | None = None
+    memory_limit_gib: float | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -189,6 +195,9 @@ class Options:
         if self.tile is not None and (isinstance(self.tile, bool) or
                                       not isinstance(self.tile, int) or self.tile < 1):
             raise InputError(f"tile: expected a number of rows >= 1 or None, got {self.tile!r}")
+        if self.memory_limit_gib is not None and not _is_positive(self.memory_limit_gib):
+            raise InputError(f"memory_limit_gib: expected a value > 0 or None, "
+                             f"got {self.memory_limit_gib!r}")
         if not _is_positive(self.max_input_gib):
             raise InputError(f"max_input_gib: expected a value > 0, got {self.max_input_gib!r}")
         if self.mesh is not None and not self.height:

@@ -84,7 +84,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                      read_mask, read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
-    from .tiles import DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, tile_rows
+    from .tiles import (DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, rows_for_memory,
+                        tile_rows)
 
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
@@ -93,11 +94,16 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     scene_paths = expand_paths(scene_patterns, name="scene")
     # Every header first: sizes, channels, pixel types and memory, before any pixel.
     limit = options.max_input_gib * 2 ** 30
+    scene_info = check_stack_files(scene_paths, name="scene", max_bytes=None)[0]
+    if options.tile is None and options.memory_limit_gib is not None:
+        options = options.replace(tile=rows_for_memory(
+            options.memory_limit_gib, (len(scene_paths), scene_info.height, scene_info.width,
+                                       scene_info.channels)))
     if scheduler is not None and options.tile is None:
         options = options.replace(tile=DEFAULT_TILE_ROWS)
     tiled = options.tile is not None
-    scene_info = check_stack_files(scene_paths, name="scene",
-                                   max_bytes=None if tiled else limit)[0]
+    if not tiled:
+        check_stack_files(scene_paths, name="scene", max_bytes=limit)
     if tiled:
         # One tile's stack is what is held at a time.
         tile_bytes = 4 * len(scene_paths) * scene_info.channels * scene_info.width * \

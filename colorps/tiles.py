@@ -45,11 +45,53 @@ from .reconstruct import (LowSolvedWarning, Reconstruction, Timings, _median, _p
                           first_residuals, low_solved_message, measured_model_scale,
                           reconstruct)
 
-__all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "DEFAULT_TILE_ROWS"]
+__all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "rows_for_memory",
+           "DEFAULT_TILE_ROWS"]
 
 #: Rows per tile when none are given: about 64 MiB of float32 per tile for 8 RGB
 #: images of 4096 columns.
 DEFAULT_TILE_ROWS = 256
+
+# ---------------------------------------------------------------- memory model
+#: Peak memory of a run, measured with benchmarks/end_to_end.py (2026-12-02):
+#: BASE_MIB for the interpreter and libraries, WHOLE_IMAGE_BYTES per scene
+#: pixel for what stays whole-image (output maps, the mean preview, pictures
+#: and files written at the end: 125 + 120 bytes per pixel at 4 MP), and
+#: WORKING_BYTES per byte of float32 input held at once (the whole stack, or a
+#: tile's: 5.6-6.1 measured). A tile has at least MIN_TILE_ROWS rows.
+BASE_MIB = 450
+WHOLE_IMAGE_BYTES = 260
+WORKING_BYTES = 6.5
+MIN_TILE_ROWS = 16
+
+
+def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int]) -> int | None:
+    """Rows per tile that keep a run of an (m, H, W, c) scene under ``limit_gib``.
+
+    Returns
+    -------
+    int or None
+        None when the whole scene fits untiled.
+
+    Raises
+    ------
+    InputError
+        When even MIN_TILE_ROWS rows would not fit, saying how much is needed.
+    """
+    m, h, w, c = shape
+    budget = limit_gib * 2 ** 30 - BASE_MIB * 2 ** 20 - WHOLE_IMAGE_BYTES * h * w
+    row_bytes = WORKING_BYTES * 4 * m * c * w
+    if budget >= row_bytes * h:
+        return None
+    rows = int(budget // row_bytes) if budget > 0 else 0
+    if rows < MIN_TILE_ROWS:
+        need = (BASE_MIB * 2 ** 20 + WHOLE_IMAGE_BYTES * h * w
+                + row_bytes * MIN_TILE_ROWS) / 2 ** 30
+        raise InputError(f"--memory-limit {limit_gib:g} GiB: a {w}x{h} capture of {m} "
+                         f"images needs about {need:.1f} GiB even in tiles of "
+                         f"{MIN_TILE_ROWS} rows (its whole-image maps and outputs alone "
+                         f"take {WHOLE_IMAGE_BYTES * h * w / 2 ** 30:.1f} GiB)")
+    return rows
 
 
 @dataclass(frozen=True)

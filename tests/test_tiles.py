@@ -1,11 +1,13 @@
 """Tiled and Dask runs give the maps of one untiled run."""
 
+import json
+
 import numpy as np
 import pytest
 
 from colorps import Gauge, reconstruct, synth
 from colorps.errors import InputError
-from colorps.io import write_image
+from colorps.io import read_image, write_image
 from colorps.tiles import StackFiles, reconstruct_tiled, tile_rows
 
 MAPS = ("normals", "albedo", "quality", "uncertainty", "solved", "reason", "bands_used",
@@ -115,3 +117,44 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
     with pytest.raises(InputError, match="--tile"):
         reconstruct_files(*args, tmp_path / "huge", options=Options(tile=16, max_input_gib=1e-6),
                           progress=False)
+
+
+def test_memory_limit_chooses_the_tile_rows():
+    from colorps.tiles import (BASE_MIB, MIN_TILE_ROWS, WHOLE_IMAGE_BYTES, WORKING_BYTES,
+                               rows_for_memory)
+
+    shape = (8, 2048, 2048, 3)
+    assert rows_for_memory(64.0, shape) is None  # fits whole
+    rows = rows_for_memory(2.0, shape)
+    row_bytes = WORKING_BYTES * 4 * 8 * 3 * 2048
+    fixed = BASE_MIB * 2 ** 20 + WHOLE_IMAGE_BYTES * 2048 * 2048
+    assert MIN_TILE_ROWS <= rows < 2048
+    assert fixed + rows * row_bytes <= 2 * 2 ** 30 < fixed + (rows + 1) * row_bytes
+    assert rows_for_memory(1.5, shape) < rows
+    with pytest.raises(InputError, match="needs about .* GiB even in tiles of 16 rows"):
+        rows_for_memory(1.0, shape)
+
+
+def test_memory_limit_on_the_command_line(tmp_path, capsys):
+    from colorps.cli import main
+
+    data = tmp_path / "capture"
+    synth.write_synthetic(data, size=48, images=6, noise=0.002)
+    args = ["reconstruct", "--scene", str(data / "scene_*.exr"), "--gauge",
+            str(data / "gauge_*.exr"), "--sphere", "auto", "--quiet"]
+    assert main(args + ["--out", str(tmp_path / "small"), "--memory-limit", "0.1"]) == 1
+    assert "--memory-limit 0.1 GiB" in capsys.readouterr().err
+    assert not (tmp_path / "small").exists()
+    assert main(args + ["--out", str(tmp_path / "ok"), "--memory-limit", "4"]) == 0
+    report = json.loads((tmp_path / "ok" / "report.json").read_text())
+    assert report["options"]["memory_limit_gib"] == 4 and report["options"]["tile"] is None
+    # A limit just above 20 rows' worth tiles the run, with the untiled maps.
+    from colorps.tiles import BASE_MIB, WHOLE_IMAGE_BYTES, WORKING_BYTES
+
+    limit = (BASE_MIB * 2 ** 20 + WHOLE_IMAGE_BYTES * 48 * 48
+             + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48) / 2 ** 30
+    assert main(args + ["--out", str(tmp_path / "tiled"), "--memory-limit", repr(limit)]) == 0
+    report = json.loads((tmp_path / "tiled" / "report.json").read_text())
+    assert report["options"]["tile"] == 20
+    assert np.array_equal(read_image(tmp_path / "tiled" / "normal.exr")[0],
+                          read_image(tmp_path / "ok" / "normal.exr")[0], equal_nan=True)
