@@ -213,6 +213,9 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
                              gauge_noise=NoiseModel(read=0.0, gain=0.0),
                              gauge_levels=(None, options.dark_level))
         ys, xs = np.nonzero(result.solved)
+        if not len(ys):
+            raise InputError("brdf fit: no scene pixel matched the virtual gauge; check "
+                             "the light file and the mask (or use --brdf lambert)")
         if len(ys) > FIT_PIXELS:
             pick = np.sort(rng.choice(len(ys), FIT_PIXELS, replace=False))
             ys, xs = ys[pick], xs[pick]

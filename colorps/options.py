@@ -113,7 +113,8 @@ class Options:
     brdf : {"fitted", "lambert"}
         Virtual gauges only (``--lights``): the finish the gauge is rendered
         with. "fitted": a diffuse falloff and highlight fitted to the scene's
-        own observations, refitted twice (:mod:`colorps.brdf`); "lambert":
+        own observations, twice: at a Lambertian gauge's normals, then at the
+        first fit's (:mod:`colorps.brdf`); "lambert":
         an ideal matte finish.
     tile : int or None
         Files only: process the scene in bands of this many rows, each read

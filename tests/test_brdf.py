@@ -131,3 +131,9 @@ def test_clipped_lights_past_64_images_are_dropped_not_refused():
     assert dropped[:, 68].all() and dropped.sum(axis=1).max() <= 2
     errors = angular_error(result.normals[clipped], scene.normals[clipped])
     assert np.median(errors) < 1.0
+
+
+def test_scene_fit_without_matches_says_why(lights):
+    dark = np.zeros((lights.images, 16, 16, 3), dtype=np.float32)
+    with pytest.raises(InputError, match="no scene pixel matched the virtual gauge"):
+        fit_scene_brdf(dark, lights, Options(read_noise=0.001, gain=0.0), radius=20)
