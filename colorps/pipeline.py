@@ -84,8 +84,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                      read_mask, read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
-    from .tiles import (DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, rows_for_memory,
-                        tile_rows)
+    from .tiles import DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, rows_for_memory
 
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
@@ -180,11 +179,10 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     levels = (gauge_levels.clip_level, gauge_levels.dark_level)
     if tiled:
         with dask_client(scheduler) as client:
-            result = reconstruct_tiled(scene, gauge_stack, gauge, options, tile=options.tile,
-                                       mask=mask, noise=scene_noise, gauge_noise=gauge_noise,
-                                       gauge_levels=levels, client=client, progress=progress)
-        preview = np.concatenate([scene[:, a:b].mean(axis=0)
-                                  for a, b in tile_rows(scene.shape[1], options.tile)])
+            result, preview = reconstruct_tiled(
+                scene, gauge_stack, gauge, options, tile=options.tile, mask=mask,
+                noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,
+                client=client, progress=progress, return_preview=True)
     else:
         result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
                              noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,

@@ -137,22 +137,24 @@ def _first_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, g
 
 def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
                gauge_levels, model_scale):
-    """A tile's reconstruction, and the warnings it raised (but low-solved ones)."""
+    """A tile's reconstruction, the warnings it raised (but low-solved ones), and
+    its mean image (the preview of the outputs)."""
+    piece = scene[:, rows[0]:rows[1]]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = reconstruct(scene[:, rows[0]:rows[1]], gauge_stack, gauge, options,
+        result = reconstruct(piece, gauge_stack, gauge, options,
                              mask=tile_mask, noise=noise, gauge_noise=gauge_noise,
                              gauge_levels=gauge_levels, model_scale=model_scale)
     said = [(w.category, str(w.message)) for w in caught
             if not issubclass(w.category, LowSolvedWarning)]
-    return result, said
+    return result, said, np.asarray(piece, dtype=np.float32).mean(axis=0)
 
 
 def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
                       tile: int = DEFAULT_TILE_ROWS, mask=None,
                       noise: NoiseModel | None = None, gauge_noise: NoiseModel | None = None,
                       gauge_levels: tuple[float | None, float] | None = None,
-                      client=None, progress: bool = False) -> Reconstruction:
+                      client=None, progress: bool = False, return_preview: bool = False):
     """:func:`colorps.reconstruct`, a band of ``tile`` rows at a time.
 
     Parameters
@@ -166,12 +168,15 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
         worker once). Default: one after the other in this process.
     progress : bool, optional
         A progress bar over tiles (Dask's own with a client).
+    return_preview : bool, optional
+        Also return the scene's mean image, (H, W, c) float32, made from the
+        tiles as they are read (the files are not read again for it).
     gauge_stack, gauge, options, mask, noise, gauge_noise, gauge_levels
         As for :func:`colorps.reconstruct`.
 
     Returns
     -------
-    Reconstruction
+    Reconstruction, or (Reconstruction, ndarray) with ``return_preview``
         The same maps as an untiled run; statistics combined over the tiles.
 
     Examples
@@ -205,10 +210,13 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     model_scale = measured_model_scale(np.concatenate(residuals))
     tiles = run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
                 dict(shared, model_scale=model_scale), progress, "tiles")
-    results = [result for result, _ in tiles]
-    said = list(dict.fromkeys(s for _, caught in tiles for s in caught))
-    return _stitch(results, said, mask if mask is not None else np.ones((h, w), bool),
-                   time.perf_counter() - t_start)
+    said = list(dict.fromkeys(s for _, caught, _ in tiles for s in caught))
+    preview = np.concatenate([mean for _, _, mean in tiles]) if return_preview else None
+    results = [result for result, _, _ in tiles]
+    del tiles  # _stitch frees each map's tile pieces once it has joined them
+    result = _stitch(results, said, mask if mask is not None else np.ones((h, w), bool),
+                     time.perf_counter() - t_start)
+    return (result, preview) if return_preview else result
 
 
 def _in_process(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress,
@@ -237,10 +245,28 @@ def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, pro
     return client.gather(futures)
 
 
-def _stitch(results: Sequence[Reconstruction], said, mask, seconds) -> Reconstruction:
-    """One Reconstruction from the tiles' (top to bottom), statistics combined."""
+@dataclass(frozen=True)
+class _StatsOnly:
+    """What _stitch still reads of a tile once its maps are joined."""
+
+    stats: object
+
+
+def _stitch(results: list, said, mask, seconds) -> Reconstruction:
+    """One Reconstruction from the tiles' (top to bottom), statistics combined.
+
+    ``results`` is emptied: each map's pieces are joined and let go one map at
+    a time, so the whole maps are never held twice."""
+    pieces = {name: [getattr(r, name) for r in results] for name in
+              ("normals", "albedo", "quality", "uncertainty", "solved", "reason",
+               "bands_used", "dropped_lights")}
+    stats_of = [r.stats for r in results]
+    results.clear()
+    results = [_StatsOnly(stats) for stats in stats_of]
+    n_matched = [int(np.isfinite(q).sum()) for q in pieces["quality"]]
+
     def rows(name):
-        return np.concatenate([getattr(r, name) for r in results], axis=0)
+        return np.concatenate(pieces.pop(name), axis=0)
 
     normals, albedo, quality, uncertainty = (rows(n) for n in
                                              ("normals", "albedo", "quality", "uncertainty"))
@@ -248,7 +274,6 @@ def _stitch(results: Sequence[Reconstruction], said, mask, seconds) -> Reconstru
                                            ("solved", "reason", "bands_used", "dropped_lights"))
     first = results[0].stats
     matched = np.isfinite(quality)
-    n_matched = [int(np.isfinite(r.quality).sum()) for r in results]
 
     def total(name):
         return sum(getattr(r.stats, name) for r in results)

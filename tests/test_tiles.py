@@ -65,7 +65,10 @@ def test_tiles_read_from_files(messy, tmp_path):
     files = StackFiles(tuple(paths), scene.shape)
     assert np.array_equal(files[:, 10:25], scene[:, 10:25])
     whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
-    assert_same(whole, reconstruct_tiled(files, gauge_stack, gauge, tile=25, mask=mask))
+    tiled, preview = reconstruct_tiled(files, gauge_stack, gauge, tile=25, mask=mask,
+                                       return_preview=True)
+    assert_same(whole, tiled)
+    np.testing.assert_allclose(preview, scene.mean(axis=0), rtol=1e-6, atol=1e-7)
 
 
 def test_tile_arguments_are_checked(messy):
