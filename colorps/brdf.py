@@ -38,6 +38,12 @@ __all__ = ["BRDF", "fit_brdf", "fit_scene_brdf", "DIFFUSE_KNOTS"]
 #: then at those of the previous fit (on DiLiGenT Ball the mean error went
 #: 2.71, 1.96, 1.37, 1.35 degrees after 0, 1, 2, 3 fits).
 SCENE_FITS = 2
+#: Fewer images than this leave too few measurements per pixel to tell a
+#: finish from tilted normals: the scene is taken as Lambertian.
+MIN_FIT_IMAGES = 6
+#: A fit that matches no better than Lambert is not kept (the report says so);
+#: one that matches more than WORSE_FIT worse is also warned about.
+WORSE_FIT = 0.02
 #: Cosines of incidence at which the diffuse falloff g is a free value (linear
 #: in between; g(1) = 1 fixes the scale the albedo carries).
 DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
@@ -167,7 +173,10 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
     subsets off and nothing refused: a quick, complete estimate), a
     :class:`BRDF` is fitted (:func:`fit_brdf`) to FIT_PIXELS of its solved
     pixels at their estimated normals, the gauge is rendered with it, and the
-    scene matched again; ``fits`` times in all.
+    scene matched again; ``fits`` times in all. The fit is kept only when the
+    scene matches the gauge rendered with it better (lower median residual)
+    than the Lambertian one (the last round's ``kept``); otherwise the result is
+    Lambert, as it is with fewer than MIN_FIT_IMAGES images (with a warning).
 
     Parameters
     ----------
@@ -190,9 +199,11 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
     Returns
     -------
     (BRDF, list of dict)
-        The last fit, and per round its RMS relative residual and parameters.
+        The last fit, and per round the median match residual of the gauge it
+        started from, the fit's RMS relative residual and its parameters.
     """
     import sys
+    import warnings
 
     from .gauge import Gauge
     from .noise import NoiseModel
@@ -207,6 +218,11 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
     rng = np.random.default_rng(0)
     brdf = BRDF.lambert()
     history = []
+    if m < MIN_FIT_IMAGES:
+        warnings.warn(f"brdf: {m} images are too few to fit a finish (need "
+                      f"{MIN_FIT_IMAGES}); the virtual gauge is Lambertian", UserWarning,
+                      stacklevel=2)
+        return brdf, history
     for round_ in range(fits):
         gauge = Gauge.virtual(lights, radius=radius, bands=c, brdf=brdf)
         result = reconstruct(data, gauge.stack, gauge, quick, mask=mask, noise=noise,
@@ -227,12 +243,22 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
             if lights.intensities.shape[1] in (1, c) else lights.intensities
         brdf, rms = fit_brdf(observed, result.normals[ys, xs].astype(np.float64),
                              lights.directions, np.asarray(colours, dtype=np.float64), usable)
-        history.append(dict(round=round_ + 1, pixels=int(len(ys)), rms_relative=rms,
-                            **brdf.as_dict()))
+        history.append(dict(round=round_ + 1, pixels=int(len(ys)),
+                            match_residual_median=result.stats.residual_median,
+                            rms_relative=rms, **brdf.as_dict()))
         if progress:
             print(f"brdf fit {round_ + 1}/{fits}: {len(ys)} pixels, RMS relative residual "
                   f"{rms:.4f}, highlight {max(brdf.specular):.4f} x shininess "
                   f"{brdf.shininess:.0f}", file=sys.stderr)
+    start, fitted = history[0]["match_residual_median"], history[-1]["match_residual_median"]
+    kept = len(history) == 1 or fitted < start
+    history[-1]["kept"] = kept
+    if not kept:
+        if fitted > (1.0 + WORSE_FIT) * start:
+            warnings.warn(f"brdf: the fitted finish matched the scene worse than a "
+                          f"Lambertian one (median residual {fitted:.2f} vs {start:.2f}); "
+                          "the virtual gauge is Lambertian", UserWarning, stacklevel=2)
+        return BRDF.lambert(), history
     return brdf, history
 
 

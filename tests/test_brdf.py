@@ -84,6 +84,8 @@ def test_fitted_virtual_gauge_beats_lambert_on_a_glossy_scene(lights):
 
     brdf, history = fit_scene_brdf(stack, lights, options, mask=scene.mask, radius=60)
     assert len(history) == 2 and history[-1]["rms_relative"] <= history[0]["rms_relative"]
+    assert history[-1]["kept"]
+    assert history[-1]["match_residual_median"] < history[0]["match_residual_median"]
     lambert, fitted, truth = error(BRDF.lambert()), error(brdf), error(GLOSSY)
     assert fitted < 0.5 * lambert
     assert fitted < truth + 0.4  # close to the gauge rendered with the true finish
@@ -137,3 +139,13 @@ def test_scene_fit_without_matches_says_why(lights):
     dark = np.zeros((lights.images, 16, 16, 3), dtype=np.float32)
     with pytest.raises(InputError, match="no scene pixel matched the virtual gauge"):
         fit_scene_brdf(dark, lights, Options(read_noise=0.001, gain=0.0), radius=20)
+
+
+def test_too_few_images_stay_lambertian(lights):
+    few = Lights(lights.directions[:4], lights.intensities[:4])
+    scene = synth.smiley_surface(48)
+    stack = _render(scene, few, GLOSSY)
+    with pytest.warns(UserWarning, match="4 images are too few"):
+        brdf, history = fit_scene_brdf(stack, few, Options(read_noise=0.001, gain=0.0),
+                                       mask=scene.mask, radius=30)
+    assert brdf.is_lambert and history == []
