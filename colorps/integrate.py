@@ -152,7 +152,10 @@ def integrate(normals, mask=None, *, weights=None,
     min_nz : float, optional
         Lower clamp of nz when converting normals to slopes.
     tol : float, optional
-        Relative residual tolerance of the iterative solver.
+        Relative residual tolerance of the iterative solver. In height units:
+        on the 1 MP smiley scene 1e-6 (the default) leaves every height within
+        3e-5 px of the converged solve (1e-4: 7e-3 px, 1e-8: 2e-7 px), and the
+        solve time hardly depends on it (pyamg's setup dominates).
     tile : int, optional
         "poisson" only: integrate hierarchically, for images too large to
         solve at once. A coarse level (at most COARSE_PIXELS pixels, slopes
