@@ -308,14 +308,15 @@ LIGHTS_PER_CHANNEL = 16
 
 
 def _write_light_channels(path, dropped: np.ndarray, m: int):
-    """lights.exr: 16 images' bits per float32 channel."""
-    from . import light_masks
-
-    flags = light_masks.to_bool(dropped, m)
+    """lights.exr: 16 images' bits per float32 channel, cut straight from the
+    masks' 64-bit words (no per-image array)."""
+    per_word = 64 // LIGHTS_PER_CHANNEL
     starts = range(0, m, LIGHTS_PER_CHANNEL)
-    weights = 2.0 ** np.arange(LIGHTS_PER_CHANNEL)
-    channels = np.stack([flags[..., a:a + LIGHTS_PER_CHANNEL] @ weights[:min(
-        LIGHTS_PER_CHANNEL, m - a)] for a in starts], axis=-1).astype(np.float32)
+    channels = np.empty(dropped.shape[:2] + (len(starts),), dtype=np.float32)
+    for j, _ in enumerate(starts):
+        shift = np.uint64(LIGHTS_PER_CHANNEL * (j % per_word))
+        channels[..., j] = (dropped[..., j // per_word] >> shift) & \
+            np.uint64(2 ** LIGHTS_PER_CHANNEL - 1)
     names = ["L"] if m <= LIGHTS_PER_CHANNEL else \
         [f"L{a}-{min(a + LIGHTS_PER_CHANNEL, m) - 1}" for a in starts]
     return write_image(path, channels, channel_names=names)

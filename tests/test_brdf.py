@@ -149,3 +149,18 @@ def test_too_few_images_stay_lambertian(lights):
         brdf, history = fit_scene_brdf(stack, few, Options(read_noise=0.001, gain=0.0),
                                        mask=scene.mask, radius=30)
     assert brdf.is_lambert and history == []
+
+
+def test_lights_exr_holds_every_image_exactly(tmp_path):
+    from colorps.io import read_image
+    from colorps.outputs import _write_light_channels
+
+    m = 40
+    flags = np.random.default_rng(7).random((5, 6, m)) < 0.3
+    _write_light_channels(tmp_path / "lights.exr", light_masks.from_bool(flags), m)
+    channels, names = read_image(tmp_path / "lights.exr")
+    assert names == ["L0-15", "L16-31", "L32-39"]
+    bits = channels.astype(np.int64)
+    back = np.concatenate([(bits[..., j:j + 1] >> np.arange(16)) & 1 for j in range(3)],
+                          axis=-1)[..., :m]
+    np.testing.assert_array_equal(back.astype(bool), flags)
