@@ -20,7 +20,7 @@ OVERVIEW_SIDE = 640
 
 def as_rgb(values) -> np.ndarray:
     """Three display bands: the first three bands, or one band repeated as grey."""
-    v = np.asarray(values, dtype=np.float64)
+    v = np.asarray(values, dtype=np.float32)
     return v[..., :3] if v.shape[-1] >= 3 else np.repeat(v[..., :1], 3, axis=-1)
 
 
@@ -42,24 +42,26 @@ def shaded_relief(height, *, azimuth_deg: float = 135.0, elevation_deg: float = 
     -------
     (H, W) ndarray of float32 in 0..1
     """
-    z = np.asarray(height, dtype=np.float64) * exaggeration
+    z = np.asarray(height, dtype=np.float32) * np.float32(exaggeration)
     inside = np.isfinite(z)
     if not inside.any():
         return np.zeros(z.shape, dtype=np.float32)
     # Outside pixels take the nearest inside height, so the rim shades cleanly.
     from scipy import ndimage
 
-    nearest = ndimage.distance_transform_edt(~inside, return_distances=False,
-                                             return_indices=True)
-    filled = z[tuple(nearest)]
-    drow = np.gradient(filled, axis=0) if z.shape[0] > 1 else np.zeros_like(filled)
-    dx = np.gradient(filled, axis=1) if z.shape[1] > 1 else np.zeros_like(filled)
-    normal = np.stack([-dx, drow, np.ones_like(dx)], axis=-1)  # y up: dz/dy = -dz/drow
-    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    if not inside.all():
+        nearest = ndimage.distance_transform_edt(~inside, return_distances=False,
+                                                 return_indices=True).astype(np.int32)
+        z = z[tuple(nearest)]
+        del nearest
+    drow = np.gradient(z, axis=0) if z.shape[0] > 1 else np.zeros_like(z)
+    dx = np.gradient(z, axis=1) if z.shape[1] > 1 else np.zeros_like(z)
     az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
-    light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    shade = np.clip(normal @ light, 0.0, 1.0)
-    return np.where(inside, 0.1 + 0.9 * shade, 0.0).astype(np.float32)
+    light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)],
+                     dtype=np.float32)
+    # The unit normal is (-dx, drow, 1) / |.| (y up: dz/dy = -dz/drow).
+    shade = (light[2] - dx * light[0] + drow * light[1]) / np.sqrt(dx * dx + drow * drow + 1)
+    return np.where(inside, 0.1 + 0.9 * np.clip(shade, 0.0, 1.0), 0.0).astype(np.float32)
 
 
 def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.ndarray:

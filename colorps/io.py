@@ -226,6 +226,10 @@ def srgb_decode(values) -> np.ndarray:
                       dtype=np.float32)
 
 
+#: srgb_encode converts this many values at a time (3 x 2^20: 12 MiB of float32).
+SRGB_CHUNK = 3 * 2 ** 20
+
+
 def srgb_encode(values) -> np.ndarray:
     """Linear values to sRGB-encoded (0..1, clipped), for previews and 8-bit files.
 
@@ -236,15 +240,20 @@ def srgb_encode(values) -> np.ndarray:
     """
     import OpenImageIO as oiio
 
-    v = np.clip(np.nan_to_num(np.asarray(values, np.float32), nan=0.0), 0.0, 1.0)
-    flat = v.ravel()
-    pad = -flat.size % 3  # OCIO converts RGB triples; any shape goes as rows of them
-    buf = oiio.ImageBuf(np.concatenate([flat, np.zeros(pad, np.float32)]).reshape(1, -1, 3))
-    encoded = oiio.ImageBufAlgo.colorconvert(buf, "linear", "sRGB")
-    if encoded.has_error:
-        raise RuntimeError(f"OpenImageIO sRGB conversion failed: {encoded.geterror()}")
-    out = encoded.get_pixels(oiio.FLOAT).ravel()[:flat.size].reshape(v.shape)
-    return np.clip(out, 0.0, 1.0)
+    values = np.asarray(values, np.float32)
+    out = np.empty(values.shape, dtype=np.float32)
+    flat, flat_out = values.reshape(-1), out.reshape(-1)
+    for start in range(0, flat.size, SRGB_CHUNK):  # bounded temporaries
+        piece = np.clip(np.nan_to_num(flat[start:start + SRGB_CHUNK], nan=0.0), 0.0, 1.0)
+        pad = -piece.size % 3  # OCIO converts RGB triples; any shape goes as rows of them
+        buf = oiio.ImageBuf(np.concatenate([piece, np.zeros(pad, np.float32)])
+                            .reshape(1, -1, 3))
+        encoded = oiio.ImageBufAlgo.colorconvert(buf, "linear", "sRGB")
+        if encoded.has_error:
+            raise RuntimeError(f"OpenImageIO sRGB conversion failed: {encoded.geterror()}")
+        flat_out[start:start + piece.size] = encoded.get_pixels(oiio.FLOAT).ravel()[
+            :piece.size]
+    return np.clip(out, 0.0, 1.0, out=out)
 
 
 def read_image(path, encoding: Encoding = "auto", *,

@@ -147,3 +147,14 @@ def test_input_levels_follow_bit_depth(tmp_path):
     assert input_levels(png16)[0] > clip8 and input_levels(png16)[1] < dark8
     clip, dark = input_levels(exr)
     assert clip is None and 0 < dark < 1e-3
+
+
+def test_srgb_encode_in_chunks_is_the_same(monkeypatch):
+    from colorps import io
+
+    values = np.random.default_rng(3).uniform(-0.1, 1.2, (5, 7, 3)).astype(np.float32)
+    values[0, 0, 0] = np.nan
+    whole = io.srgb_encode(values)
+    monkeypatch.setattr(io, "SRGB_CHUNK", 7)  # chunks that split pixels' triples
+    np.testing.assert_array_equal(io.srgb_encode(values), whole)
+    assert whole[0, 0, 0] == 0.0 and whole.max() <= 1.0 and whole.min() >= 0.0
