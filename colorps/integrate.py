@@ -44,10 +44,10 @@ METHODS = ("poisson", "dct")
 #: COARSE_PIXELS pixels; each tile is solved with TILE_MARGIN extra pixels on
 #: every side, whose outer ring is held to known heights (penalty
 #: ANCHOR_WEIGHT times the mean pair weight).
-COARSE_PIXELS = 2 ** 20
+COARSE_PIXELS = 2 ** 18
 TILE_MARGIN = 48
 #: Tile side of a tiled ``colorps reconstruct`` run's integration (pixels).
-DEFAULT_TILE = 1024
+DEFAULT_TILE = 512
 ANCHOR_WEIGHT = 1e3
 #: (A second pass holding the rings to the first pass's heights, an overlapping
 #: Schwarz step, left the difference to the untiled solve unchanged: it comes

@@ -84,7 +84,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                      read_mask, read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
-    from .tiles import DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, rows_for_memory
+    from .tiles import (DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, release_freed_memory,
+                        rows_for_memory)
 
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
@@ -195,6 +196,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         height = integrate(result.normals, result.solved,
                            weights=weights_from_quality(result.quality),
                            tile=DEFAULT_TILE if tiled else None)
+        if tiled:
+            release_freed_memory()
         result = result.with_height(height, time.perf_counter() - t0)
 
     report = dict(

@@ -216,6 +216,7 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     del tiles  # _stitch frees each map's tile pieces once it has joined them
     result = _stitch(results, said, mask if mask is not None else np.ones((h, w), bool),
                      time.perf_counter() - t_start)
+    release_freed_memory()
     return (result, preview) if return_preview else result
 
 
@@ -223,9 +224,30 @@ def _in_process(client, task, scene, ranges, masks, gauge_stack, gauge, shared, 
                 what):
     from tqdm.auto import tqdm
 
-    return [task(scene, rows, tile_mask, gauge_stack, gauge, **shared)
-            for rows, tile_mask in tqdm(list(zip(ranges, masks)), desc=what,
-                                        disable=not progress, leave=False)]
+    done = []
+    for rows, tile_mask in tqdm(list(zip(ranges, masks)), desc=what, disable=not progress,
+                                leave=False):
+        done.append(task(scene, rows, tile_mask, gauge_stack, gauge, **shared))
+        release_freed_memory()  # the tile's temporaries, before the next tile's
+    return done
+
+
+def release_freed_memory() -> None:
+    """Give memory that numpy has freed back to the system (glibc ``malloc_trim``).
+
+    glibc keeps freed blocks of a few MiB on its heap for reuse: after a tile's
+    temporaries are freed the process stays that much larger (57 bytes per
+    pixel of a 4 MP run, measured). A no-op where the C library has no
+    ``malloc_trim``.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress, what):
