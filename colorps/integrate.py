@@ -91,7 +91,7 @@ def weights_from_quality(quality, *, scale: float | None = None) -> np.ndarray:
         median = np.median(q[finite]) if finite.any() else 0.0
         scale = 3.0 * median if median > 0 else 1.0
     w = 1.0 / (1.0 + (np.where(finite, q, 0.0) / scale) ** 2)
-    return np.where(finite, w, 0.0)
+    return np.where(finite, w, 0.0).astype(np.float32)
 
 
 def _edges(mask: np.ndarray):
@@ -118,11 +118,13 @@ def _validate(normals, mask, weights):
                              f"{n.shape[:2]}")
         mask = mask.astype(bool) & finite
     if weights is not None:
-        weights = np.asarray(weights, dtype=np.float64)
+        weights = np.asarray(weights)
+        weights = weights if weights.dtype in (np.float32, np.float64) else \
+            weights.astype(np.float64)
         if weights.shape != n.shape[:2]:
             raise InputError(f"weights: shape {weights.shape} differs from the normals' "
                              f"{n.shape[:2]}")
-        if not np.all(np.isfinite(weights[mask])) or np.any(weights[mask] < 0):
+        if np.any(mask & ~((weights >= 0) & (weights < np.inf))):  # NaN fails both
             raise InputError("weights: must be finite and >= 0 inside the mask")
     return n, mask, weights
 
@@ -346,12 +348,15 @@ def _integrate_tiled(normals, mask, weights, tol, tile, min_nz) -> np.ndarray:
 
 
 def _zero_mean_parts(height: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Shift each 4-connected part of the mask to zero mean height."""
+    """Shift each 4-connected part of the mask to zero mean height (in place, a
+    band of rows at a time: no image-sized temporary)."""
     from scipy import ndimage
 
     labels, count = ndimage.label(mask)
     if count:
-        means = ndimage.mean(height, labels, index=np.arange(1, count + 1))
-        height = height - np.r_[0.0, means][labels]
+        offsets = np.r_[0.0, ndimage.mean(height, labels, index=np.arange(1, count + 1))]
+        for start in range(0, height.shape[0], 256):
+            rows = slice(start, start + 256)
+            height[rows] -= offsets[labels[rows]]
     height[~mask] = np.nan
     return height
