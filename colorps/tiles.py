@@ -53,15 +53,18 @@ __all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "rows_for_memory",
 DEFAULT_TILE_ROWS = 256
 
 # ---------------------------------------------------------------- memory model
-#: Peak memory of a run, measured with benchmarks/end_to_end.py (2026-12-02):
-#: BASE_MIB for the interpreter and libraries, WHOLE_IMAGE_BYTES per scene
-#: pixel for what stays whole-image (output maps, the mean preview, pictures
-#: and files written at the end: 125 + 120 bytes per pixel at 4 MP), and
-#: WORKING_BYTES per byte of float32 input held at once (the whole stack, or a
-#: tile's: 5.6-6.1 measured). A tile has at least MIN_TILE_ROWS rows.
-BASE_MIB = 450
-WHOLE_IMAGE_BYTES = 260
-WORKING_BYTES = 6.5
+#: Peak memory of a tiled run, measured at 4 and 16 MP (2026-12-02): BASE_MIB
+#: for the interpreter, libraries and gauge; while the tiles run, MAP_BYTES per
+#: scene pixel for the maps and preview gathered so far, plus TILE_FIXED_MIB and
+#: WORKING_BYTES per byte of the tile's float32 input (6.2 measured; 8 leaves a
+#: margin); after them FINISH_BYTES per pixel for the integration and the files
+#: written (102 measured). A tile has at least MIN_TILE_ROWS rows. An untiled run
+#: is the same with the whole scene as its one tile.
+BASE_MIB = 250
+MAP_BYTES = 60
+TILE_FIXED_MIB = 300
+WORKING_BYTES = 8.0
+FINISH_BYTES = 110
 MIN_TILE_ROWS = 16
 
 
@@ -79,18 +82,20 @@ def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int]) -> int |
         When even MIN_TILE_ROWS rows would not fit, saying how much is needed.
     """
     m, h, w, c = shape
-    budget = limit_gib * 2 ** 30 - BASE_MIB * 2 ** 20 - WHOLE_IMAGE_BYTES * h * w
+    mib = 2 ** 20
+    limit = limit_gib * 2 ** 30
+    finish = BASE_MIB * mib + FINISH_BYTES * h * w
+    budget = limit - BASE_MIB * mib - MAP_BYTES * h * w - TILE_FIXED_MIB * mib
     row_bytes = WORKING_BYTES * 4 * m * c * w
-    if budget >= row_bytes * h:
+    if finish <= limit and budget >= row_bytes * h:
         return None
     rows = int(budget // row_bytes) if budget > 0 else 0
-    if rows < MIN_TILE_ROWS:
-        need = (BASE_MIB * 2 ** 20 + WHOLE_IMAGE_BYTES * h * w
-                + row_bytes * MIN_TILE_ROWS) / 2 ** 30
+    if finish > limit or rows < MIN_TILE_ROWS:
+        need = max(finish, limit - budget + row_bytes * MIN_TILE_ROWS) / 2 ** 30
         raise InputError(f"--memory-limit {limit_gib:g} GiB: a {w}x{h} capture of {m} "
                          f"images needs about {need:.1f} GiB even in tiles of "
-                         f"{MIN_TILE_ROWS} rows (its whole-image maps and outputs alone "
-                         f"take {WHOLE_IMAGE_BYTES * h * w / 2 ** 30:.1f} GiB)")
+                         f"{MIN_TILE_ROWS} rows (its whole-image maps, height "
+                         f"integration and outputs take {finish / 2 ** 30:.1f} GiB)")
     return rows
 
 

@@ -123,17 +123,17 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
 
 
 def test_memory_limit_chooses_the_tile_rows():
-    from colorps.tiles import (BASE_MIB, MIN_TILE_ROWS, WHOLE_IMAGE_BYTES, WORKING_BYTES,
-                               rows_for_memory)
+    from colorps.tiles import (BASE_MIB, MAP_BYTES, MIN_TILE_ROWS, TILE_FIXED_MIB,
+                               WORKING_BYTES, rows_for_memory)
 
-    shape = (8, 2048, 2048, 3)
+    shape = (8, 4096, 4096, 3)
     assert rows_for_memory(64.0, shape) is None  # fits whole
-    rows = rows_for_memory(2.0, shape)
-    row_bytes = WORKING_BYTES * 4 * 8 * 3 * 2048
-    fixed = BASE_MIB * 2 ** 20 + WHOLE_IMAGE_BYTES * 2048 * 2048
-    assert MIN_TILE_ROWS <= rows < 2048
+    rows = rows_for_memory(2.0, shape)  # 16 MP under 2 GiB: in tiles
+    row_bytes = WORKING_BYTES * 4 * 8 * 3 * 4096
+    fixed = (BASE_MIB + TILE_FIXED_MIB) * 2 ** 20 + MAP_BYTES * 4096 * 4096
+    assert MIN_TILE_ROWS <= rows < 4096
     assert fixed + rows * row_bytes <= 2 * 2 ** 30 < fixed + (rows + 1) * row_bytes
-    assert rows_for_memory(1.5, shape) < rows
+    assert rows_for_memory(2.5, shape) > rows
     with pytest.raises(InputError, match="needs about .* GiB even in tiles of 16 rows"):
         rows_for_memory(1.0, shape)
 
@@ -152,9 +152,9 @@ def test_memory_limit_on_the_command_line(tmp_path, capsys):
     report = json.loads((tmp_path / "ok" / "report.json").read_text())
     assert report["options"]["memory_limit_gib"] == 4 and report["options"]["tile"] is None
     # A limit just above 20 rows' worth tiles the run, with the untiled maps.
-    from colorps.tiles import BASE_MIB, WHOLE_IMAGE_BYTES, WORKING_BYTES
+    from colorps.tiles import BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES
 
-    limit = (BASE_MIB * 2 ** 20 + WHOLE_IMAGE_BYTES * 48 * 48
+    limit = ((BASE_MIB + TILE_FIXED_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
              + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48) / 2 ** 30
     assert main(args + ["--out", str(tmp_path / "tiled"), "--memory-limit", repr(limit)]) == 0
     report = json.loads((tmp_path / "tiled" / "report.json").read_text())
