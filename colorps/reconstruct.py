@@ -767,7 +767,8 @@ def _light_subsets(capture: Capture, state: _MatchState, options: Options,
         for g in order:
             pick = np.flatnonzero(inverse == g)
             pixels = which_pixel[pick]
-            lights_kept = tuple(np.flatnonzero(~light_masks.to_bool(keys[g, :words], m)))
+            lights_kept = tuple(int(i) for i in
+                                np.flatnonzero(~light_masks.to_bool(keys[g, :words], m)))
             band_tuple = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
             result = capture.match(ys[pixels], xs[pixels], band_tuple,
                                    (0,) * len(band_tuple), lights_kept, grid_n=options.grid_n,
