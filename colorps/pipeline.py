@@ -95,6 +95,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     # Every header first: sizes, channels, pixel types and memory, before any pixel.
     limit = options.max_input_gib * 2 ** 30
     scene_info = check_stack_files(scene_paths, name="scene", max_bytes=None)[0]
+    requested_tile = options.tile
     if options.tile is None and options.memory_limit_gib is not None:
         options = options.replace(tile=rows_for_memory(
             options.memory_limit_gib, (len(scene_paths), scene_info.height, scene_info.width,
@@ -114,11 +115,13 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                              f"GiB, more than --max-input-gib {options.max_input_gib:g}; "
                              "use fewer rows (--tile)")
         if lights is not None and "auto" in (options.read_noise, options.gain):
-            raise InputError("--tile with --lights needs --read-noise and --gain: the noise "
-                             "of a virtual-gauge run is fitted to the whole scene at once")
+            raise InputError(f"a tiled run ({_why_tiled(requested_tile)}) with --lights needs "
+                             "--read-noise and --gain: the noise of a virtual-gauge run is "
+                             "fitted to the whole scene at once")
         if lights is not None and options.brdf == "fitted":
-            raise InputError("--tile with --lights needs --brdf lambert: the finish of a "
-                             "virtual-gauge run is fitted to the whole scene at once")
+            raise InputError(f"a tiled run ({_why_tiled(requested_tile)}) with --lights needs "
+                             "--brdf lambert: the finish of a virtual-gauge run is fitted to "
+                             "the whole scene at once")
     if lights is not None:
         light_set = read_lights(lights, light_intensities, images=len(scene_paths))
         gauge_paths = []
@@ -216,6 +219,11 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     save_reconstruction(result, out, channel_names=names, scene_preview=preview,
                         report=report, mesh=options.mesh_kinds, overwrite=overwrite)
     return result
+
+
+def _why_tiled(requested_tile) -> str:
+    return "--tile" if requested_tile is not None else \
+        "--memory-limit too small for the whole scene, or --scheduler"
 
 
 @contextlib.contextmanager
