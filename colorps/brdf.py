@@ -215,6 +215,7 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
                             tile=None)
     data = np.asarray(scene, dtype=np.float32)
     m, h, w, c = data.shape
+    colours = lights.as_lighting(c).colours[:, 0, :]  # (m, c), checked against the bands
     rng = np.random.default_rng(0)
     brdf = BRDF.lambert()
     history = []
@@ -239,10 +240,8 @@ def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
         usable = np.isfinite(observed) & (observed > options.dark_level)
         if options.clip_level is not None:
             usable &= observed < options.clip_level
-        colours = np.broadcast_to(lights.intensities, (m, c)) \
-            if lights.intensities.shape[1] in (1, c) else lights.intensities
         brdf, rms = fit_brdf(observed, result.normals[ys, xs].astype(np.float64),
-                             lights.directions, np.asarray(colours, dtype=np.float64), usable)
+                             lights.directions, colours, usable)
         history.append(dict(round=round_ + 1, pixels=int(len(ys)),
                             match_residual_median=result.stats.residual_median,
                             rms_relative=rms, **brdf.as_dict()))

@@ -181,13 +181,13 @@ class Gauge:
         size = int(np.ceil(2 * radius + 10))
         centre = (size - 1) / 2.0
         ball = sphere_surface(size, radius, bands=bands)
+        lighting = lights.as_lighting(bands)
         if isinstance(brdf, BRDF):
-            lighting = lights.as_lighting(bands)
             stack = np.zeros((lights.images, size, size, bands), dtype=np.float32)
             stack[:, ball.mask] = brdf.shade(ball.normals[ball.mask], lights.directions,
                                              lighting.colours[:, 0, :])
         else:
-            stack = render(ball, lights.as_lighting(bands), brdf=brdf)
+            stack = render(ball, lighting, brdf=brdf)
         gauge = cls.from_sphere((size, size), centre, centre, radius, albedo=DEFAULT_ALBEDO)
         return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack)
 

@@ -33,7 +33,6 @@ import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -272,13 +271,6 @@ def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, pro
     return client.gather(futures)
 
 
-@dataclass(frozen=True)
-class _StatsOnly:
-    """What _stitch still reads of a tile once its maps are joined."""
-
-    stats: object
-
-
 def _stitch(results: list, said, mask, seconds) -> Reconstruction:
     """One Reconstruction from the tiles' (top to bottom), statistics combined.
 
@@ -287,9 +279,8 @@ def _stitch(results: list, said, mask, seconds) -> Reconstruction:
     pieces = {name: [getattr(r, name) for r in results] for name in
               ("normals", "albedo", "quality", "uncertainty", "solved", "reason",
                "bands_used", "dropped_lights")}
-    stats_of = [r.stats for r in results]
+    tile_stats = [r.stats for r in results]
     results.clear()
-    results = [_StatsOnly(stats) for stats in stats_of]
     n_matched = [int(np.isfinite(q).sum()) for q in pieces["quality"]]
 
     def rows(name):
@@ -299,27 +290,27 @@ def _stitch(results: list, said, mask, seconds) -> Reconstruction:
                                              ("normals", "albedo", "quality", "uncertainty"))
     solved, reason, bands_used, dropped = (rows(n) for n in
                                            ("solved", "reason", "bands_used", "dropped_lights"))
-    first = results[0].stats
+    first = tile_stats[0]
     matched = np.isfinite(quality)
 
     def total(name):
-        return sum(getattr(r.stats, name) for r in results)
+        return sum(getattr(t, name) for t in tile_stats)
 
     def counts(name):  # summed dicts, keys in the first tile's order, zeros kept
         out = {}
-        for r in results:
-            for key, value in getattr(r.stats, name).items():
+        for t in tile_stats:
+            for key, value in getattr(t, name).items():
                 out[key] = out.get(key, 0) + int(value)
         return out
 
     def per_lookup(name):
         weight = sum(n_matched)
-        return (sum(getattr(r.stats, name) * n for r, n in zip(results, n_matched)) / weight
+        return (sum(getattr(t, name) * n for t, n in zip(tile_stats, n_matched)) / weight
                 if weight else 0.0)
 
     groups = Counter()
-    for r in results:
-        for g in r.stats.grids:
+    for t in tile_stats:
+        for g in t.grids:
             groups[dataclasses.replace(g, pixels=0)] += g.pixels
     grids = tuple(sorted((dataclasses.replace(g, pixels=n) for g, n in groups.items()),
                          key=lambda g: -g.pixels))
@@ -332,19 +323,19 @@ def _stitch(results: list, said, mask, seconds) -> Reconstruction:
         warnings.warn(message, LowSolvedWarning, stacklevel=3)
     q = quality[matched]
     refined = uncertainty[solved]
-    timing = Timings(**{f.name: sum(getattr(r.stats.seconds, f.name) or 0.0 for r in results)
+    timing = Timings(**{f.name: sum(getattr(t.seconds, f.name) or 0.0 for t in tile_stats)
                         for f in dataclasses.fields(Timings)})
     stats = dataclasses.replace(
-        first, grid_n=next((r.stats.grid_n for r in results if r.stats.grid_n), None),
+        first, grid_n=next((t.grid_n for t in tile_stats if t.grid_n), None),
         grids=grids, buckets_per_lookup=per_lookup("buckets_per_lookup"),
         tests_per_lookup=per_lookup("tests_per_lookup"), pixels=total("pixels"),
         solved=total("solved"), solved_from_band_subset=total("solved_from_band_subset"),
         solved_from_light_subset=total("solved_from_light_subset"),
         lights_dropped_per_pixel=counts("lights_dropped_per_pixel"),
-        dropped_per_light=[dict(light=i, darker=sum(r.stats.dropped_per_light[i]["darker"]
-                                                    for r in results),
-                                brighter=sum(r.stats.dropped_per_light[i]["brighter"]
-                                             for r in results))
+        dropped_per_light=[dict(light=i, darker=sum(t.dropped_per_light[i]["darker"]
+                                                    for t in tile_stats),
+                                brighter=sum(t.dropped_per_light[i]["brighter"]
+                                             for t in tile_stats))
                            for i in range(first.images)],
         pixels_by_reason=counts("pixels_by_reason"),
         residual_median=_median(q), residual_p95=_percentile(q, 95),
