@@ -306,14 +306,14 @@ def _integrate_tiled(normals, mask, weights, tol, tile, min_nz) -> np.ndarray:
     coarse = np.full((hc, wc), np.nan)
     coarse[coarse_mask] = _integrate_poisson(cgx, cgrow, coarse_mask,
                                              None if weights is None else mean_weight, tol)
-    # Coarse heights at fine pixel centres (block centres at factor i + (factor-1)/2).
-    def upsampled(rows, cols):
-        yy, xx = np.meshgrid((rows - (factor - 1) / 2.0) / factor,
-                             (cols - (factor - 1) / 2.0) / factor, indexing="ij")
-        value = ndimage.map_coordinates(np.nan_to_num(coarse), [yy, xx], order=1,
-                                        mode="nearest")
-        known = ndimage.map_coordinates(coarse_mask.astype(float), [yy, xx], order=1,
-                                        mode="nearest")
+    filled, known_coarse = np.nan_to_num(coarse), coarse_mask.astype(float)
+
+    def upsampled(ys, xs):
+        """Coarse heights at fine pixels (ys, xs); block centres are at
+        factor i + (factor - 1) / 2."""
+        at = [(ys - (factor - 1) / 2.0) / factor, (xs - (factor - 1) / 2.0) / factor]
+        value = ndimage.map_coordinates(filled, at, order=1, mode="nearest")
+        known = ndimage.map_coordinates(known_coarse, at, order=1, mode="nearest")
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(known > 0.25, value / known, np.nan)
 
@@ -336,7 +336,8 @@ def _integrate_tiled(normals, mask, weights, tol, tile, min_nz) -> np.ndarray:
             if b1 < w:
                 ring[:, -1] = True
             anchor = np.full(inside.shape, np.nan)
-            anchor[ring] = upsampled(np.arange(a0, a1), np.arange(b0, b1))[ring]
+            ring_y, ring_x = np.nonzero(ring)
+            anchor[ring_y, ring_x] = upsampled(ring_y + a0, ring_x + b0)
             gx, grow = slopes(np.where(inside[..., None], normals[a0:a1, b0:b1], 0.0),
                               min_nz=min_nz)
             solved = np.full(inside.shape, np.nan)
