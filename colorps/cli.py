@@ -325,7 +325,7 @@ def main(argv=None) -> int:
 def _run(args, previous_sigterm) -> int:
     try:
         if args.command == "reconstruct":
-            options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
+            options = _options(args)
             result = reconstruct_files(
                 args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
                 mask_path=args.mask, options=options, lights=args.lights,
@@ -387,6 +387,11 @@ def _run(args, previous_sigterm) -> int:
     return 0
 
 
+def _options(args) -> Options:
+    """The Options the parsed flags of reconstruct or batch stand for."""
+    return Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
+
+
 def _batch(args) -> int:
     """colorps batch: every capture, a table, exit code 1 if any failed."""
     from .batch import find_capture, read_manifest, run_batch
@@ -397,7 +402,7 @@ def _batch(args) -> int:
         captures += read_manifest(args.manifest)
     if not captures:
         raise InputError("batch: give capture folders or --manifest")
-    options = Options(**{f.name: getattr(args, f.name) for f in fields(Options)})
+    options = _options(args)
     with dask_client(args.scheduler) as client:
         outcomes = run_batch(captures, args.out, options, client=client,
                              overwrite=args.overwrite, progress=not args.quiet)

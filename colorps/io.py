@@ -32,9 +32,9 @@ from .errors import ImageReadError, InputError, OutputError
 from .options import FLOAT_DARK_LEVEL
 
 __all__ = ["read_image", "read_stack", "read_mask", "read_info", "ImageInfo",
-           "check_stack_files", "write_image", "expand_paths", "file_mode",
-           "srgb_decode", "srgb_encode", "input_levels", "noise_base", "LossyInputWarning",
-           "Encoding"]
+           "check_stack_files", "check_decoded_size", "write_image", "expand_paths",
+           "file_mode", "srgb_decode", "srgb_encode", "input_levels", "noise_base",
+           "LossyInputWarning", "Encoding"]
 
 #: How stored pixel values map to linear light.
 Encoding = Literal["auto", "linear", "srgb"]
@@ -140,13 +140,27 @@ def check_stack_files(paths: Sequence, *, name: str = "stack",
                 f"{info.path}: pixel type {info.pixel_type} differs from {first.path} "
                 f"({first.pixel_type}); clip and dark levels follow from the pixel type, "
                 "so every image of a stack must be stored alike")
+    if max_bytes is not None:
+        check_decoded_size(infos, max_bytes, name=name)
+    return infos
+
+
+def check_decoded_size(infos: Sequence[ImageInfo], max_bytes: float, *,
+                       name: str = "stack") -> None:
+    """Refuse a stack (its checked headers) whose decoded pixels exceed ``max_bytes``.
+
+    Raises
+    ------
+    InputError
+        Naming the first file, the stack's size and the limit.
+    """
+    first = infos[0]
     total = sum(i.decoded_bytes for i in infos)
-    if max_bytes is not None and total > max_bytes:
+    if total > max_bytes:
         raise InputError(
             f"{first.path}: the {name} stack ({len(infos)} images of {first.width}x"
             f"{first.height}x{first.channels}) would need {total / 2 ** 30:.1f} GiB decoded, "
             f"more than the limit of {max_bytes / 2 ** 30:.1f} GiB (--max-input-gib)")
-    return infos
 
 
 @contextlib.contextmanager

@@ -80,8 +80,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     from .lights import read_lights
     from .noise import NoiseModel, estimate_noise
     from .integrate import DEFAULT_TILE, integrate, weights_from_quality
-    from .io import (check_stack_files, expand_paths, input_levels, noise_base, read_image,
-                     read_mask, read_stack)
+    from .io import (check_decoded_size, check_stack_files, expand_paths, input_levels,
+                     noise_base, read_image, read_mask, read_stack)
     from .outputs import prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
     from .tiles import (DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, release_freed_memory,
@@ -94,7 +94,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     scene_paths = expand_paths(scene_patterns, name="scene")
     # Every header first: sizes, channels, pixel types and memory, before any pixel.
     limit = options.max_input_gib * 2 ** 30
-    scene_info = check_stack_files(scene_paths, name="scene", max_bytes=None)[0]
+    scene_infos = check_stack_files(scene_paths, name="scene")
+    scene_info = scene_infos[0]
     requested_tile = options.tile
     if options.tile is None and options.memory_limit_gib is not None:
         options = options.replace(tile=rows_for_memory(
@@ -104,8 +105,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         options = options.replace(tile=DEFAULT_TILE_ROWS)
     tiled = options.tile is not None
     if not tiled:
-        check_stack_files(scene_paths, name="scene", max_bytes=limit)
-    if tiled:
+        check_decoded_size(scene_infos, limit, name="scene")
+    else:
         # One tile's stack is what is held at a time.
         tile_bytes = 4 * len(scene_paths) * scene_info.channels * scene_info.width * \
             min(options.tile, scene_info.height)
