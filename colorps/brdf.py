@@ -146,7 +146,7 @@ class BRDF:
         """
         normals = np.asarray(normals, dtype=np.float64)
         intensities = np.asarray(intensities, dtype=np.float64)
-        cosine = np.maximum(normals @ np.asarray(directions, dtype=np.float64).T, 0.0).T
+        cosine, cos_half = _angles(normals, directions)
         diffuse = cosine * np.interp(cosine, DIFFUSE_KNOTS, self.falloff)
         specular = np.broadcast_to(self.specular, (intensities.shape[1],)) \
             if len(self.specular) == 1 else np.array(self.specular)
@@ -155,7 +155,7 @@ class BRDF:
                              f"{intensities.shape[1]}")
         value = np.repeat(diffuse[..., None], intensities.shape[1], axis=-1)
         if np.any(specular):
-            value += _lobe(normals, directions, self.shininess)[..., None] * specular
+            value += _lobe(cosine, cos_half, self.shininess)[..., None] * specular
         return value * intensities[:, None, :]
 
     def as_dict(self) -> dict:
@@ -266,10 +266,16 @@ def _half_vectors(directions: np.ndarray) -> np.ndarray:
     return half / np.linalg.norm(half, axis=1, keepdims=True)
 
 
-def _lobe(normals: np.ndarray, directions: np.ndarray, shininess: float) -> np.ndarray:
-    """(m, N) normalised Blinn-Phong lobe times the cosine of incidence."""
-    cosine = np.maximum(normals @ np.asarray(directions, dtype=np.float64).T, 0.0).T
+def _angles(normals: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m, N) cosines of incidence (0 when unlit) and of the half-vector angle."""
+    directions = np.asarray(directions, dtype=np.float64)
+    cosine = np.maximum(normals @ directions.T, 0.0).T
     cos_half = np.clip(normals @ _half_vectors(directions).T, 0.0, 1.0).T
+    return cosine, cos_half
+
+
+def _lobe(cosine: np.ndarray, cos_half: np.ndarray, shininess: float) -> np.ndarray:
+    """(m, N) normalised Blinn-Phong lobe times the cosine of incidence."""
     return (shininess + 2.0) / 2.0 * cos_half ** shininess * cosine
 
 
@@ -311,8 +317,8 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     """
     obs = np.asarray(observations, dtype=np.float64)
     m, n_pixels, c = obs.shape
-    cosine = np.maximum(normals @ directions.T, 0.0).T  # (m, N)
-    use = np.asarray(usable, dtype=bool) & (cosine >= MIN_FIT_COSINE)[..., None]
+    lit = np.maximum(normals @ directions.T, 0.0).T  # (m, N) at the given normals
+    use = np.asarray(usable, dtype=bool) & (lit >= MIN_FIT_COSINE)[..., None]
     obs = np.where(use, obs / intensities[:, None, :], 0.0)
     if use.sum() < 10 * (len(DIFFUSE_KNOTS) + c + 1):
         raise InputError(f"brdf fit: only {int(use.sum())} usable lit measurements")
@@ -325,13 +331,14 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     for round_ in range(1 + JOINT_ROUNDS):
         if round_:
             normals = _refine_normals(obs, base_weight, normals, brdf, directions)
-        diffuse_basis = _hats(np.maximum(normals @ directions.T, 0.0).T)  # (m, N, K)
+        cosine, cos_half = _angles(normals, directions)  # one round's normals
+        diffuse_basis = _hats(cosine)  # (m, N, K)
         fits = {}
 
         def fit_at(shininess):
             if shininess not in fits:
                 fits[shininess] = _fit_at(obs, base_weight, diffuse_basis,
-                                          _lobe(normals, directions, shininess))
+                                          _lobe(cosine, cos_half, shininess))
             return fits[shininess][2]
 
         shininess = min(grid, key=fit_at)
