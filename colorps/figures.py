@@ -16,6 +16,12 @@ __all__ = ["shaded_relief", "overview", "as_rgb"]
 #: pixels on a side (a panel is 320 pixels wide): drawing a 4096-pixel image
 #: into it only costs time.
 OVERVIEW_SIDE = 640
+#: Overview layout in pixels: panel side, margin around a panel, title text size;
+#: and the font (one of OpenImageIO's bundled fonts).
+PANEL_SIDE = 300
+PANEL_MARGIN = 10
+TITLE_PX = 16
+FONT = "DroidSans"
 
 
 def as_rgb(values) -> np.ndarray:
@@ -67,6 +73,11 @@ def shaded_relief(height, *, azimuth_deg: float = 135.0, elevation_deg: float = 
 def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.ndarray:
     """Side-by-side figure: scene photo, normal map, albedo, shaded relief.
 
+    Each panel is fitted into PANEL_SIDE x PANEL_SIDE pixels under its title,
+    on a white canvas; drawn with OpenImageIO (a triangle-filter resize, four
+    times faster than its default Lanczos at this size, and text in its bundled
+    fonts), so no plotting library is loaded.
+
     Parameters
     ----------
     scene_image : (H, W, c) array_like
@@ -77,14 +88,15 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
         Linear albedo (NaN = unsolved).
     height : (H, W) array_like or None
         Height map (NaN outside), or None to leave the panel out.
+    title : str, optional
+        A line above the panels.
 
     Returns
     -------
     (h, w, 3) ndarray of float32 in 0..1
         The rendered figure (sRGB), ready for :func:`colorps.io.write_image`.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    import OpenImageIO as oiio
 
     h, w = np.shape(normals)[:2]
     step = max(1, -(-max(h, w) // OVERVIEW_SIDE))  # ceil
@@ -99,16 +111,27 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
         # Slopes per subsampled pixel are step times steeper: shade the same relief.
         panels.append(("shaded relief", shaded_relief(np.asarray(height)[pick],
                                                       exaggeration=1.0 / step)))
-    fig = Figure(figsize=(3.2 * len(panels), 3.6), dpi=100)
-    for k, (name, image) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), k + 1)
-        ax.imshow(np.clip(image, 0, 1), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
-        ax.set_title(name, fontsize=10)
-        ax.set_axis_off()
+    cell = PANEL_SIDE + 2 * PANEL_MARGIN
+    top = 2 * TITLE_PX if title else 0
+    canvas = np.ones((top + 2 * TITLE_PX + cell, cell * len(panels), 3), dtype=np.float32)
+    for k, (_, image) in enumerate(panels):
+        image = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0).astype(np.float32)
+        image = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=-1)
+        scale = PANEL_SIDE / max(image.shape[:2])
+        ph, pw = (max(1, round(side * scale)) for side in image.shape[:2])
+        fitted = oiio.ImageBufAlgo.resize(oiio.ImageBuf(np.ascontiguousarray(image)),
+                                          "triangle", roi=oiio.ROI(0, pw, 0, ph, 0, 1, 0, 3))
+        y0 = top + 2 * TITLE_PX + PANEL_MARGIN + (PANEL_SIDE - ph) // 2
+        x0 = k * cell + PANEL_MARGIN + (PANEL_SIDE - pw) // 2
+        canvas[y0:y0 + ph, x0:x0 + pw] = np.clip(fitted.get_pixels(oiio.FLOAT), 0.0, 1.0)
+    figure = oiio.ImageBuf(canvas)
+    black = (0.0, 0.0, 0.0)
+    for k, (name, _) in enumerate(panels):
+        oiio.ImageBufAlgo.render_text(figure, k * cell + cell // 2, top + TITLE_PX + TITLE_PX // 2,
+                                      name, TITLE_PX, FONT, black, alignx="center")
     if title:
-        fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    figure = np.asarray(canvas.buffer_rgba(), dtype=np.float32)[..., :3] / 255.0
-    return figure
+        oiio.ImageBufAlgo.render_text(figure, canvas.shape[1] // 2, top - TITLE_PX // 3,
+                                      title, TITLE_PX + 2, FONT, black, alignx="center")
+    if figure.has_error:
+        raise RuntimeError(f"OpenImageIO could not draw the overview: {figure.geterror()}")
+    return np.clip(figure.get_pixels(oiio.FLOAT), 0.0, 1.0)

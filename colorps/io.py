@@ -240,6 +240,9 @@ def srgb_decode(values) -> np.ndarray:
                       dtype=np.float32)
 
 
+#: zlib level of PNG files written: 1 writes a 1-megapixel normal map 3.5 times
+#: faster than the default 6, for 12 % more bytes (measured 2026-12-02).
+PNG_COMPRESSION = 1
 #: srgb_encode converts this many values at a time (3 x 2^20: 12 MiB of float32).
 SRGB_CHUNK = 3 * 2 ** 20
 
@@ -416,6 +419,8 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
         spec.channelnames = tuple(channel_names)
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
+    elif path.suffix.lower() == ".png":
+        spec.attribute("png:compressionLevel", PNG_COMPRESSION)
     with atomic_target(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:

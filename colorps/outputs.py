@@ -7,7 +7,7 @@ normal.exr      float32 camera-space unit normals, channels X, Y, Z; NaN where
                 not solved
 normal.png      8-bit preview (n + 1) / 2 in R, G, B; black where not solved
 albedo.exr      float32 linear albedo, one channel per input band (input names)
-albedo.png      sRGB preview (colour-science), black where not solved
+albedo.png      sRGB preview, black where not solved
 quality.exr     float32 match residual in noise units (about 1 = explained,
                 see :mod:`colorps.residuals`); NaN where no match was tried
 invalid.png     why pixels are not solved, one colour per
@@ -42,6 +42,7 @@ import json
 import os
 import shutil
 import tempfile
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -113,7 +114,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
                         channel_names: Sequence[str] | None = None,
                         scene_preview: np.ndarray | None = None,
                         report: dict | None = None, mesh: Sequence[str] = (),
-                        overwrite: bool = False) -> list[Path]:
+                        overwrite: bool = False,
+                        finished: Future[Reconstruction] | None = None) -> list[Path]:
     """Write every output file of a reconstruction (see the module docstring).
 
     Parameters
@@ -131,15 +133,20 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         Mesh files to write (needs ``result.height``).
     overwrite : bool, optional
         Replace existing results.
+    finished : concurrent.futures.Future of Reconstruction, optional
+        ``result`` with its height map, still being computed (the pipeline
+        integrates in a thread meanwhile): the files that need no height are
+        written first, the height files and report.json once it is done. An
+        error it raises fails the whole write (nothing is left behind).
 
     Returns
     -------
     list of Path
         The files written.
     """
-    if mesh and result.height is None:
+    if mesh and result.height is None and finished is None:
         raise OutputError("a mesh needs the height map; integrate the normals first")
-    writers = _writers(result, channel_names, scene_preview, report, mesh)
+    writers = _writers(result, channel_names, scene_preview, report, mesh, finished)
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     return _write_folder(out, writers)
 
@@ -259,9 +266,14 @@ def save_height(height: np.ndarray, out, *, mesh=None, overwrite: bool = False) 
     write_image(out, height, channel_names=["Z"])
 
 
-def _writers(result: Reconstruction, channel_names, scene_preview, report,
-             mesh) -> dict[str, Callable[[Path], object]]:
-    """``{file name: write(path)}`` of every file to write, report.json last."""
+def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
+             finished=None) -> dict[str, Callable[[Path], object]]:
+    """``{file name: write(path)}`` of every file to write: the maps, then those
+    that need the height (waiting for ``finished``), report.json last."""
+
+    def final() -> Reconstruction:
+        return result if finished is None else finished.result()
+
     c = result.albedo.shape[-1]
     if channel_names is None:
         channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
@@ -282,24 +294,22 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report,
                                                       result.stats.images),
         "uncertainty.exr": lambda p: write_image(p, result.uncertainty, channel_names=["U"]),
     }
-    z = result.height
-    if z is not None:
+    if result.height is not None or finished is not None:
         preview = result.albedo if scene_preview is None else scene_preview
         title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
-        writers["height.exr"] = lambda p: write_image(p, z, channel_names=["Z"])
-        writers["relief.png"] = lambda p: write_image(p, shaded_relief(z), dtype="uint8")
+        writers["height.exr"] = lambda p: write_image(p, final().height, channel_names=["Z"])
+        writers["relief.png"] = lambda p: write_image(p, shaded_relief(final().height),
+                                                      dtype="uint8")
         writers["overview.png"] = lambda p: write_image(
-            p, overview(preview, result.normals, result.albedo, z, title=title),
+            p, overview(preview, result.normals, result.albedo, final().height, title=title),
             dtype="uint8")
         for kind in mesh:
-            writers[MESH_FILES[kind]] = lambda p: _write_mesh(z, result.albedo, p)
-    doc = dict(report or {})
-    doc["statistics"] = result.stats.as_dict()
-    doc["reasons"] = {str(int(r)): r.label for r in Reason}
-    doc["conventions"] = _CONVENTIONS
-    doc["files"] = list(writers) + ["report.json"]
-    writers["report.json"] = lambda p: p.write_text(
-        json.dumps(doc, indent=2, default=_jsonable))
+            writers[MESH_FILES[kind]] = lambda p: _write_mesh(final().height, result.albedo, p)
+    about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS,
+             "files": list(writers) + ["report.json"]}
+    writers["report.json"] = lambda p: p.write_text(json.dumps(
+        {**(report or {}), "statistics": final().stats.as_dict(), **about}, indent=2,
+        default=_jsonable))
     return writers
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, Sequence
 
 import numpy as np
@@ -194,7 +195,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                              progress=progress)
         preview = scene.mean(axis=0)
     _check_solved(result, scene_paths, gauge_paths, mask_path)
-    if options.height:
+
+    def with_height(result: Reconstruction) -> Reconstruction:
         t0 = time.perf_counter()
         # A tiled run integrates in tiles too (memory of one tile + a coarse level).
         height = integrate(result.normals, result.solved,
@@ -202,7 +204,10 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                            tile=DEFAULT_TILE if tiled else None)
         if tiled:
             release_freed_memory()
-        result = result.with_height(height, time.perf_counter() - t0)
+        return result.with_height(height, time.perf_counter() - t0)
+
+    if options.height and tiled:  # one thing at a time: memory is what counts
+        result = with_height(result)
 
     report = dict(
         colorps_version=__version__, scene=[str(p) for p in scene_paths],
@@ -217,9 +222,15 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
                           dark_level=gauge_levels.dark_level),
     )
-    save_reconstruction(result, out, channel_names=names, scene_preview=preview,
-                        report=report, mesh=options.mesh_kinds, overwrite=overwrite)
-    return result
+    # An untiled run integrates in a thread while the maps are written (the
+    # solver and OpenImageIO's writers release the GIL): the two overlap.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        finished = pool.submit(with_height, result) \
+            if options.height and result.height is None else None
+        save_reconstruction(result, out, channel_names=names, scene_preview=preview,
+                            report=report, mesh=options.mesh_kinds, overwrite=overwrite,
+                            finished=finished)
+    return result if finished is None else finished.result()
 
 
 def _why_tiled(requested_tile) -> str:

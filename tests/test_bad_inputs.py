@@ -216,6 +216,31 @@ def test_disk_full_leaves_nothing_and_names_the_folder(capture, tmp_path, capsys
     assert list(tmp_path.iterdir()) == []  # not the folder, not its parents
 
 
+def test_failed_integration_leaves_old_results_byte_identical(capture, tmp_path, capsys,
+                                                              monkeypatch):
+    # The height is integrated in a thread while the maps are written: its
+    # failure must still fail the whole write, after some maps were written.
+    import colorps.outputs as outputs
+    from colorps.errors import InputError
+
+    out = tmp_path / "out"
+    assert main(args_for(capture, out)) == 0
+    before = snapshot(tmp_path)
+    written = []
+    real_write = outputs.write_image
+    monkeypatch.setattr(outputs, "write_image",
+                        lambda path, *a, **k: written.append(path) or real_write(path, *a, **k))
+
+    def failing(*args, **kwargs):
+        raise InputError("weights: must be finite and >= 0 inside the mask")
+
+    monkeypatch.setattr(sys.modules["colorps.integrate"], "integrate", failing)
+    assert main(args_for(capture, out, None, None, "--overwrite")) == 1
+    one_line_error(capsys, "weights: must be finite")
+    assert any(p.name == "normal.exr" for p in written)  # the maps went first
+    assert snapshot(tmp_path) == before
+
+
 def test_overwrite_swaps_the_whole_folder(capture, tmp_path):
     out = tmp_path / "out"
     assert main(args_for(capture, out)) == 0
