@@ -194,6 +194,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                              noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,
                              progress=progress)
         preview = scene.mean(axis=0)
+    del scene  # the stack is not needed past here: free it for integration and writing
     _check_solved(result, scene_paths, gauge_paths, mask_path)
 
     def with_height(result: Reconstruction) -> Reconstruction:

@@ -5,8 +5,11 @@ depends on the gauge, the noise model and the capture's **model scale** only
 (:mod:`colorps.residuals`), so tiles can be solved independently once the
 scale is known. A tiled run therefore has two passes:
 
-1. each tile's first residuals (:func:`colorps.reconstruct.first_residuals`),
-   gathered into the capture's model scale
+1. each tile's first residuals (:func:`colorps.reconstruct.first_residuals`)
+   at the pixels the scale is measured on
+   (:func:`colorps.reconstruct.model_scale_pixels`: at most about 2^16 of
+   them, so this pass costs little more than reading the tiles), gathered
+   into the capture's model scale
    (:func:`colorps.reconstruct.measured_model_scale`);
 2. each tile's :func:`colorps.reconstruct` with that scale.
 
@@ -42,7 +45,7 @@ from .noise import NoiseModel
 from .options import Options
 from .reconstruct import (LowSolvedWarning, Reconstruction, Timings, _median, _percentile,
                           first_residuals, low_solved_message, measured_model_scale,
-                          reconstruct)
+                          model_scale_pixels, reconstruct)
 
 __all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "rows_for_memory",
            "DEFAULT_TILE_ROWS"]
@@ -131,12 +134,17 @@ def tile_rows(height: int, tile: int) -> list[tuple[int, int]]:
 
 def _first_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
                 gauge_levels):
-    """A tile's first residuals; ``scene[:, rows]`` is the tile, ``tile_mask`` its mask."""
+    """A tile's first residuals; ``scene[:, rows]`` is the tile, ``tile_mask`` the
+    pixels to match (only its rows with any are processed: each pixel's
+    residual is its own)."""
+    keep = tile_mask.any(axis=1)
+    if not keep.any():
+        return np.zeros(0, dtype=np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the whole run reports, once
-        return first_residuals(scene[:, rows[0]:rows[1]], gauge_stack, gauge, options,
-                               mask=tile_mask, noise=noise, gauge_noise=gauge_noise,
-                               gauge_levels=gauge_levels)
+        return first_residuals(scene[:, rows[0]:rows[1]][:, keep], gauge_stack, gauge,
+                               options, mask=tile_mask[keep], noise=noise,
+                               gauge_noise=gauge_noise, gauge_levels=gauge_levels)
 
 
 def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
@@ -209,8 +217,11 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     shared = dict(options=options, noise=noise, gauge_noise=gauge_noise,
                   gauge_levels=gauge_levels)
     run = _in_process if client is None else _on_dask
-    residuals = run(client, _first_task, scene, ranges, masks, gauge_stack, gauge, shared,
-                    progress, "first matches")
+    # The first pass matches only the pixels the model scale is measured on.
+    whole = mask if mask is not None else np.ones((h, w), dtype=bool)
+    sampled = model_scale_pixels(whole)
+    residuals = run(client, _first_task, scene, ranges, [sampled[a:b] for a, b in ranges],
+                    gauge_stack, gauge, shared, progress, "first matches")
     model_scale = measured_model_scale(np.concatenate(residuals))
     tiles = run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
                 dict(shared, model_scale=model_scale), progress, "tiles")

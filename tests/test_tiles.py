@@ -51,6 +51,26 @@ def test_tiles_give_the_untiled_maps_and_statistics(messy):
         assert_same(whole, reconstruct_tiled(scene, gauge_stack, gauge, tile=tile, mask=mask))
 
 
+def test_model_scale_from_a_lattice_of_pixels_tiled_or_not(messy, monkeypatch):
+    """The scale is measured on every s-th row and column (s = 2 here): the same
+    pixels, so the same scale and maps, whether or not the scene is tiled."""
+    import sys
+
+    from colorps.reconstruct import measured_model_scale, model_scale_pixels
+
+    recon = sys.modules["colorps.reconstruct"]
+    scene, gauge_stack, gauge, mask = messy
+    monkeypatch.setattr(recon, "MODEL_SCALE_PIXELS", mask.sum() // 5)  # step 2
+    picked = model_scale_pixels(mask)
+    assert picked.sum() < mask.sum() / 3 and not picked[1::2].any()
+    assert np.array_equal(model_scale_pixels(mask[7:], step=2, first_row=7), picked[7:])
+    whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
+    first = recon.first_residuals(scene, gauge_stack, gauge, mask=picked)
+    assert whole.stats.model_scale == measured_model_scale(first)
+    for tile in (7, 30):
+        assert_same(whole, reconstruct_tiled(scene, gauge_stack, gauge, tile=tile, mask=mask))
+
+
 def test_each_tile_alone_would_scale_differently(messy):
     """Without the shared model scale, tiles would not reproduce the whole run."""
     scene, gauge_stack, gauge, mask = messy
