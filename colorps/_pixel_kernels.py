@@ -8,6 +8,8 @@ or above the clip level, and a band's OV is **dark** when its Euclidean norm
 is at most ``min_norm``.
 """
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -173,7 +175,9 @@ def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
                 v = 0.0
             variance = read2 + gain * v
             if pixel_kind == 1:
-                ulp = 2.0 ** (np.floor(np.log2(max(v, 2.0 ** -14))) - 10.0)
+                # One half-float unit at v: 2^(floor(log2 v) - 10), from the
+                # binary exponent (frexp: v = f 2^e, f in [0.5, 1)).
+                ulp = math.ldexp(1.0, math.frexp(max(v, 2.0 ** -14))[1] - 11)
                 variance += ulp * ulp / 12.0
             elif pixel_kind == 2:
                 q = np.interp(v, levels, table)

@@ -220,31 +220,62 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     # The first pass matches only the pixels the model scale is measured on.
     whole = mask if mask is not None else np.ones((h, w), dtype=bool)
     sampled = model_scale_pixels(whole)
-    residuals = run(client, _first_task, scene, ranges, [sampled[a:b] for a, b in ranges],
-                    gauge_stack, gauge, shared, progress, "first matches")
+    residuals = []
+    run(client, _first_task, scene, ranges, [sampled[a:b] for a, b in ranges], gauge_stack,
+        gauge, shared, progress, "first matches", lambda k, found: residuals.append(found))
     model_scale = measured_model_scale(np.concatenate(residuals))
-    tiles = run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
-                dict(shared, model_scale=model_scale), progress, "tiles")
-    said = list(dict.fromkeys(s for _, caught, _ in tiles for s in caught))
-    preview = np.concatenate([mean for _, _, mean in tiles]) if return_preview else None
-    results = [result for result, _, _ in tiles]
-    del tiles  # _stitch frees each map's tile pieces once it has joined them
-    result = _stitch(results, said, mask if mask is not None else np.ones((h, w), bool),
+    joined = _Joined(h, return_preview)
+    run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
+        dict(shared, model_scale=model_scale), progress, "tiles",
+        lambda k, outcome: joined.add(k, ranges[k], *outcome))
+    result = _stitch(joined, mask if mask is not None else np.ones((h, w), bool),
                      time.perf_counter() - t_start)
     release_freed_memory()
-    return (result, preview) if return_preview else result
+    return (result, joined.preview) if return_preview else result
+
+
+class _Joined:
+    """The whole-image maps, filled in as tiles finish (in any order); each
+    tile's maps are let go once copied, so they are never held twice."""
+
+    def __init__(self, height: int, with_preview: bool) -> None:
+        self.height = height
+        self.maps: dict[str, np.ndarray] = {}
+        self.stats: dict[int, object] = {}
+        self.said: dict[int, list] = {}
+        self.matched: dict[int, int] = {}
+        self.with_preview = with_preview
+        self.preview = None
+
+    def add(self, k: int, rows: tuple[int, int], result: Reconstruction, said, mean) -> None:
+        for name in _MAPS:
+            piece = getattr(result, name)
+            if name not in self.maps:
+                self.maps[name] = np.empty((self.height,) + piece.shape[1:], piece.dtype)
+            self.maps[name][rows[0]:rows[1]] = piece
+        if self.with_preview:
+            if self.preview is None:
+                self.preview = np.empty((self.height,) + mean.shape[1:], np.float32)
+            self.preview[rows[0]:rows[1]] = mean
+        self.stats[k] = result.stats
+        self.said[k] = said
+        self.matched[k] = int(np.isfinite(result.quality).sum())
+
+
+#: The maps of a Reconstruction a tiled run joins, in its field order.
+_MAPS = ("normals", "albedo", "quality", "uncertainty", "solved", "reason", "bands_used",
+         "dropped_lights")
 
 
 def _in_process(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress,
-                what):
+                what, collect):
+    """Run ``task`` on each tile in turn, handing ``collect(k, outcome)`` each outcome."""
     from tqdm.auto import tqdm
 
-    done = []
-    for rows, tile_mask in tqdm(list(zip(ranges, masks)), desc=what, disable=not progress,
-                                leave=False):
-        done.append(task(scene, rows, tile_mask, gauge_stack, gauge, **shared))
+    for k, (rows, tile_mask) in enumerate(tqdm(list(zip(ranges, masks)), desc=what,
+                                               disable=not progress, leave=False)):
+        collect(k, task(scene, rows, tile_mask, gauge_stack, gauge, **shared))
         release_freed_memory()  # the tile's temporaries, before the next tile's
-    return done
 
 
 def release_freed_memory() -> None:
@@ -265,42 +296,37 @@ def release_freed_memory() -> None:
         pass
 
 
-def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress, what):
+def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, progress, what,
+             collect):
+    """Run ``task`` on each tile as a Dask task; ``collect(k, outcome)`` as each ends."""
+    from dask.distributed import as_completed
     from dask.distributed import progress as dask_progress
 
     gauge_stack, gauge = client.scatter([np.ascontiguousarray(gauge_stack), gauge],
                                         broadcast=True, hash=False)
-    futures = []
-    for rows, tile_mask in zip(ranges, masks):
+    futures = {}
+    for k, (rows, tile_mask) in enumerate(zip(ranges, masks)):
         piece, piece_rows = scene, rows  # files: the worker reads its own rows
         if isinstance(scene, np.ndarray):  # in memory: each tile is sent on its own
             piece, piece_rows = scene[:, rows[0]:rows[1]], (0, rows[1] - rows[0])
-        futures.append(client.submit(task, piece, piece_rows, tile_mask, gauge_stack, gauge,
-                                     **shared, pure=False))
+        futures[client.submit(task, piece, piece_rows, tile_mask, gauge_stack, gauge,
+                              **shared, pure=False)] = k
     if progress:
-        dask_progress(futures)
-    return client.gather(futures)
+        dask_progress(list(futures))
+    for future, outcome in as_completed(list(futures), with_results=True):
+        collect(futures.pop(future), outcome)
+        future.release()
 
 
-def _stitch(results: list, said, mask, seconds) -> Reconstruction:
-    """One Reconstruction from the tiles' (top to bottom), statistics combined.
-
-    ``results`` is emptied: each map's pieces are joined and let go one map at
-    a time, so the whole maps are never held twice."""
-    pieces = {name: [getattr(r, name) for r in results] for name in
-              ("normals", "albedo", "quality", "uncertainty", "solved", "reason",
-               "bands_used", "dropped_lights")}
-    tile_stats = [r.stats for r in results]
-    results.clear()
-    n_matched = [int(np.isfinite(q).sum()) for q in pieces["quality"]]
-
-    def rows(name):
-        return np.concatenate(pieces.pop(name), axis=0)
-
-    normals, albedo, quality, uncertainty = (rows(n) for n in
-                                             ("normals", "albedo", "quality", "uncertainty"))
-    solved, reason, bands_used, dropped = (rows(n) for n in
-                                           ("solved", "reason", "bands_used", "dropped_lights"))
+def _stitch(joined: _Joined, mask, seconds) -> Reconstruction:
+    """One Reconstruction from the joined maps, statistics combined over the tiles
+    (top to bottom)."""
+    order = sorted(joined.stats)
+    tile_stats = [joined.stats[k] for k in order]
+    n_matched = [joined.matched[k] for k in order]
+    said = list(dict.fromkeys(s for k in order for s in joined.said[k]))
+    normals, albedo, quality, uncertainty, solved, reason, bands_used, dropped = (
+        joined.maps.pop(name) for name in _MAPS)
     first = tile_stats[0]
     matched = np.isfinite(quality)
 
