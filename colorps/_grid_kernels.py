@@ -654,3 +654,49 @@ def lookup(queries, plane, entries, cells, buckets, sketch, blocks, plan, out_ro
         first = chunk * QUERY_CHUNK
         _lookup_chunk(queries, first, min(first + QUERY_CHUNK, n_queries), grid, low, high,
                       padded, out_row, out_dist, out_buckets, out_tests)
+
+
+# ---------------------------------------------------------------- build
+@njit(cache=True, parallel=True)
+def bucket_summaries(sorted64, h_sorted, sketches, first, h_range, box_low, box_high, mean,
+                     radius):
+    """Per bucket: its [h_min, h_max], sketch box, mean and radius about the mean.
+
+    Bucket b holds the sorted entries ``first[b]`` up to the next bucket's first
+    (or the end). Written in place: ``h_range`` (B, 2) float64, ``box_low`` and
+    ``box_high`` (B, lanes) float32, ``mean`` (B, >= D) float32 (columns past D
+    untouched), ``radius`` (B,) float64: the largest float64 distance of an
+    entry from the float32 mean, inflated by a relative 1e-6 and 1e-7 for
+    rounding. The mean is summed entry by entry in storage order.
+    """
+    k_entries, dims = sorted64.shape
+    n_buckets = first.size
+    lanes = sketches.shape[1]
+    for b in prange(n_buckets):
+        start = first[b]
+        stop = first[b + 1] if b + 1 < n_buckets else k_entries
+        h_low, h_high = h_sorted[start], h_sorted[start]
+        for lane in range(lanes):
+            box_low[b, lane] = sketches[start, lane]
+            box_high[b, lane] = sketches[start, lane]
+        for e in range(start + 1, stop):
+            h_low = min(h_low, h_sorted[e])
+            h_high = max(h_high, h_sorted[e])
+            for lane in range(lanes):
+                box_low[b, lane] = min(box_low[b, lane], sketches[e, lane])
+                box_high[b, lane] = max(box_high[b, lane], sketches[e, lane])
+        h_range[b, 0] = h_low
+        h_range[b, 1] = h_high
+        for d in range(dims):
+            total = 0.0
+            for e in range(start, stop):
+                total += sorted64[e, d]
+            mean[b, d] = np.float32(total / (stop - start))
+        spread2 = 0.0
+        for e in range(start, stop):
+            s2 = 0.0
+            for d in range(dims):
+                diff = sorted64[e, d] - np.float64(mean[b, d])
+                s2 += diff * diff
+            spread2 = max(spread2, s2)
+        radius[b] = np.sqrt(spread2) * (1 + 1e-6) + 1e-7

@@ -270,18 +270,18 @@ def _storage(ci: np.ndarray, cj: np.ndarray, n: int, block: int):
 
 def _buckets(sorted64: np.ndarray, h_sorted: np.ndarray, first: np.ndarray,
              entry_sketch: np.ndarray) -> _grid_kernels.Buckets:
-    """Per bucket: [h_min, h_max], the sketch box, the mean and the radius about it."""
-    counts = np.diff(np.r_[first, sorted64.shape[0]])
-    h_range = np.stack([np.minimum.reduceat(h_sorted, first),
-                        np.maximum.reduceat(h_sorted, first)], axis=1)
-    mean = (np.add.reduceat(sorted64, first, axis=0) / counts[:, None]).astype(np.float32)
-    # Radius about the stored (float32) mean, inflated for rounding.
-    of_entry = np.repeat(np.arange(first.size), counts)
-    spread = np.sqrt(((sorted64 - mean[of_entry]) ** 2).sum(axis=1))
-    radius = np.maximum.reduceat(spread, first) * (1 + 1e-6) + 1e-7
-    box_low, box_high = _boxes(entry_sketch, first)
-    return _grid_kernels.Buckets(h_range=np.ascontiguousarray(h_range), box_low=box_low,
-                                 box_high=box_high, mean=_padded(mean), radius=radius)
+    """Per bucket: [h_min, h_max], the sketch box, the mean and the radius about it
+    (one compiled pass, :func:`colorps._grid_kernels.bucket_summaries`)."""
+    n_buckets, lanes = first.size, entry_sketch.shape[1]
+    h_range = np.empty((n_buckets, 2))
+    box_low = np.empty((n_buckets, lanes), dtype=np.float32)
+    box_high = np.empty((n_buckets, lanes), dtype=np.float32)
+    mean = _padded(np.zeros((n_buckets, sorted64.shape[1]), dtype=np.float32))
+    radius = np.empty(n_buckets)
+    _grid_kernels.bucket_summaries(sorted64, h_sorted, entry_sketch, first, h_range, box_low,
+                                   box_high, mean, radius)
+    return _grid_kernels.Buckets(h_range=h_range, box_low=box_low, box_high=box_high,
+                                 mean=mean, radius=radius)
 
 
 def _blocks(entry_sketch: np.ndarray, block_start: np.ndarray, n: int, block: int,
