@@ -14,6 +14,7 @@ from .geometry import angular_error, sphere_normals
 from .grid import BucketGrid, QueryStats
 from .integrate import integrate, weights_from_quality
 from .lights import Lights, read_lights, write_lights
+from .matching import GaugeTables
 from .options import Options
 from .reasons import Reason
 from .reconstruct import Reconstruction, ReconstructionStats, reconstruct
@@ -26,7 +27,8 @@ except PackageNotFoundError:  # running from a source tree
 
 __all__ = [
     "reconstruct", "Options", "Reconstruction", "ReconstructionStats", "Reason",
-    "Gauge", "find_sphere", "BRDF", "fit_scene_brdf", "light_masks", "Lights", "read_lights", "write_lights", "BucketGrid", "QueryStats",
+    "Gauge", "find_sphere", "BRDF", "fit_scene_brdf", "light_masks", "Lights", "read_lights",
+    "write_lights", "BucketGrid", "QueryStats", "GaugeTables",
     "SignatureSet", "compute_signatures", "luminance",
     "integrate", "weights_from_quality", "angular_error", "sphere_normals", "synth",
     "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",

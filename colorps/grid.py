@@ -502,6 +502,15 @@ class BucketGrid:
         stats = QueryStats(float(n_buckets.mean()), float(n_tests.mean()), n_buckets, n_tests)
         return rows, dist, stats
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the grid's arrays (what keeping it costs)."""
+        def total(value):
+            if isinstance(value, np.ndarray):
+                return value.nbytes
+            return sum(total(v) for v in value) if isinstance(value, tuple) else 0
+        return total(tuple(self._data)) + self._entry_index.nbytes + self.bucket_counts.nbytes
+
     def __repr__(self) -> str:
         return (f"BucketGrid(size={self.size}, dims={self.dims}, n={self.n}, "
                 f"alpha={self.size / self.n ** 2:.3g})")

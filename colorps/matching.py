@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import InputError
 from .grid import BucketGrid
 from .noise import NoiseModel
 from .residuals import band_variance, match_residual, table_resolution, unit_rows
 
-__all__ = ["Capture", "GroupResult", "weight_levels", "nearest"]
+__all__ = ["Capture", "GaugeTables", "GroupResult", "weight_levels", "nearest"]
 
 # ---------------------------------------------------------------- tuning
 #: Band weights are 2^level, level = round(log2(relative SNR)) in DROP_LEVEL + 1 .. 0;
@@ -37,6 +38,9 @@ DROP_LEVEL = -3
 BRUTE_FORCE_PIXELS = 128
 #: Brute force works on blocks of about this many table-times-query values.
 BRUTE_FORCE_BLOCK = 1 << 22
+#: GaugeTables keeps grids up to this many MiB (a 30k-entry colour grid of 8
+#: images takes about 16): the ones first built, which are the largest groups'.
+TABLE_CACHE_MIB = 192
 
 
 def weight_levels(norms: np.ndarray, variance: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -55,10 +59,70 @@ def weight_levels(norms: np.ndarray, variance: np.ndarray, valid: np.ndarray) ->
     return levels.astype(np.int8)
 
 
+class GaugeTables:
+    """Bucket grids of one gauge's tables, kept to be used again.
+
+    The tiles of a capture match against the same tables (same gauge, options
+    and model): with one GaugeTables passed to each tile's
+    :func:`colorps.reconstruct`, every table's grid is built once instead of
+    once per tile (in each Dask worker: a scattered copy fills on its own).
+    Grids are kept while they fit in ``max_mib``; the first built stay (a
+    tile matches its largest groups first, so those are the ones kept).
+    The gauge they were built for is checked by a fingerprint of its
+    observation vectors and settings: another gauge raises an InputError.
+    """
+
+    def __init__(self, max_mib: float = TABLE_CACHE_MIB) -> None:
+        import threading
+
+        self.max_bytes = int(max_mib * 2 ** 20)
+        self.bytes = 0
+        self.built = 0
+        self.reused = 0
+        self._grids: dict = {}
+        self._fingerprint = None
+        self._lock = threading.Lock()
+
+    def attach(self, fingerprint: bytes) -> None:
+        """Check (or, the first time, record) the gauge's fingerprint."""
+        with self._lock:
+            if self._fingerprint is None:
+                self._fingerprint = fingerprint
+            elif fingerprint != self._fingerprint:
+                raise InputError("tables: these GaugeTables were built for another gauge "
+                                 "or other options; use one per capture and settings")
+
+    def get(self, key):
+        grid = self._grids.get(key)
+        if grid is not None:
+            self.reused += 1
+        return grid
+
+    def keep(self, key, grid: BucketGrid) -> None:
+        size = grid.nbytes
+        with self._lock:
+            self.built += 1
+            if key not in self._grids and self.bytes + size <= self.max_bytes:
+                self._grids[key] = grid
+                self.bytes += size
+
+    def __getstate__(self) -> dict:  # sent to Dask workers empty, without the lock
+        return dict(max_bytes=self.max_bytes, fingerprint=self._fingerprint)
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["max_bytes"] / 2 ** 20)
+        self._fingerprint = state["fingerprint"]
+
+
 def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None,
-            sample=None) -> tuple[np.ndarray, float, float, int | None]:
-    """Exact nearest table row of each query; (rows, summed b, summed d, grid N or None)."""
-    if len(queries) < BRUTE_FORCE_PIXELS:
+            sample=None, tables: GaugeTables | None = None, key=None
+            ) -> tuple[np.ndarray, float, float, int | None]:
+    """Exact nearest table row of each query; (rows, summed b, summed d, grid N or None).
+
+    With ``tables`` the grid of ``key`` is taken from it when it holds one,
+    and a grid built is offered to it."""
+    grid = None if tables is None else tables.get(key)
+    if grid is None and len(queries) < BRUTE_FORCE_PIXELS:
         t = table.astype(np.float64)
         t2 = (t * t).sum(axis=1)
         rows = np.empty(len(queries), dtype=np.int64)
@@ -68,7 +132,10 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
             d2 = t2[None, :] - 2.0 * q @ t.T
             rows[a:a + step] = np.argmin(d2, axis=1)
         return rows, float(len(queries)), float(len(queries) * len(table)), None
-    grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
+    if grid is None:
+        grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
+        if tables is not None:
+            tables.keep(key, grid)
     rows, _, st = grid.query(queries, threads=threads, return_stats=True)
     return (rows, float(st.buckets_per_query.sum()), float(st.tests_per_query.sum()),
             grid.n)
@@ -124,6 +191,9 @@ class Capture:
         Smallest usable OV norm over any light subset.
     gauge_model : NoiseModel, optional
         Of the gauge's measurements, when its files differ from the scene's.
+    tables : GaugeTables, optional
+        Grids kept from other pieces of the same capture (checked against
+        :meth:`gauge_fingerprint`), and offered the ones built here.
     """
 
     scene_ov: np.ndarray
@@ -136,6 +206,7 @@ class Capture:
     gauge_model: NoiseModel | None = None
     scene_clipped: np.ndarray | None = None
     scene_invalid: np.ndarray | None = None
+    tables: GaugeTables | None = None
     _light_sets: dict = field(default_factory=dict)
     _gauge_variance: np.ndarray | None = None
 
@@ -146,6 +217,20 @@ class Capture:
     @property
     def bands(self) -> int:
         return self.scene_ov.shape[-2]
+
+    def __post_init__(self) -> None:
+        if self.tables is not None:
+            self.tables.attach(self.gauge_fingerprint())
+
+    def gauge_fingerprint(self) -> bytes:
+        """A digest of everything the tables are made of: the gauge's OVs, its
+        usable bands and the smallest usable norm."""
+        import hashlib
+
+        digest = hashlib.blake2b(np.ascontiguousarray(self.gauge_ov).tobytes())
+        digest.update(np.ascontiguousarray(self.gauge_valid).tobytes())
+        digest.update(repr((self.gauge_ov.shape, float(self.min_norm))).encode())
+        return digest.digest()
 
     def light_set(self, lights: tuple[int, ...]) -> _LightSet:
         """The gauge restricted to ``lights`` (computed once per subset)."""
@@ -187,7 +272,8 @@ class Capture:
         t_grid = time.perf_counter() - t0
         t0 = time.perf_counter()
         found, b_sum, d_sum, n = nearest(table, queries, grid_n=grid_n, threads=threads,
-                                         sample=sample)
+                                         sample=sample, tables=self.tables,
+                                         key=(bands, levels, lights, grid_n))
         rows = np.flatnonzero(table_px)[found]
         t_lookup = time.perf_counter() - t0
         g = gauge.signatures.reshape(-1, self.bands, len(lights))[rows][:, band_list]

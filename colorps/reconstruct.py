@@ -31,7 +31,7 @@ from . import _pixel_kernels, light_masks
 from ._checks import check_stack
 from .errors import InputError
 from .gauge import Gauge, parse_albedo
-from .matching import DROP_LEVEL, Capture, GroupResult, weight_levels
+from .matching import DROP_LEVEL, Capture, GaugeTables, GroupResult, weight_levels
 from .noise import NoiseModel, estimate_noise
 from .options import FLOAT_DARK_LEVEL, MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason, reason_counts
@@ -285,7 +285,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
                 mask=None, noise: NoiseModel | None = None,
                 gauge_noise: NoiseModel | None = None,
                 gauge_levels: tuple[float | None, float] | None = None,
-                model_scale: float | None = None,
+                model_scale: float | None = None, tables: GaugeTables | None = None,
                 progress: bool = False, **changes) -> Reconstruction:
     """Recover normals and intrinsic colour of a scene from a gauge.
 
@@ -314,6 +314,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
         Divide the residuals by this instead of the model scale measured from
         this scene's first matches (:func:`first_residuals`): pieces of one
         capture processed apart share the whole capture's scale.
+    tables : GaugeTables, optional
+        Grids of this gauge's tables kept from earlier pieces of the same
+        capture (same gauge and options), used again instead of rebuilt;
+        the grids built here are offered to it.
     progress : bool, optional
         Show a progress bar.
     **changes
@@ -351,7 +355,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | None = None
     m, h, w, c = scene.shape
     gauge_albedo = parse_albedo(gauge.albedo, c)
 
-    setup = _setup(scene, gauge_stack, gauge, options, noise, gauge_noise, gauge_levels)
+    setup = _setup(scene, gauge_stack, gauge, options, noise, gauge_noise, gauge_levels,
+                   tables)
     capture, scene_sig, gauge_sig = setup.capture, setup.scene_sig, setup.gauge_sig
     model, min_norm, usable_gauge, said = (setup.model, setup.min_norm, setup.usable_gauge,
                                            setup.said)
@@ -437,7 +442,8 @@ def low_solved_message(reason: np.ndarray, mask: np.ndarray, solved: np.ndarray
 def first_residuals(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
                     mask=None, noise: NoiseModel | None = None,
                     gauge_noise: NoiseModel | None = None,
-                    gauge_levels: tuple[float | None, float] | None = None) -> np.ndarray:
+                    gauge_levels: tuple[float | None, float] | None = None,
+                    tables: GaugeTables | None = None) -> np.ndarray:
     """Residuals of the first matches of a piece of a scene, before any scaling.
 
     :func:`reconstruct` divides residuals by the model scale of its scene
@@ -453,7 +459,8 @@ def first_residuals(scene, gauge_stack, gauge: Gauge, options: Options | None = 
     """
     options = (options or Options()).with_levels(None, FLOAT_DARK_LEVEL)
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
-    setup = _setup(scene, gauge_stack, gauge, options, noise, gauge_noise, gauge_levels)
+    setup = _setup(scene, gauge_stack, gauge, options, noise, gauge_noise, gauge_levels,
+                   tables)
     state = _first_match(setup.capture, mask, options, progress=False)
     return state.quality[state.row >= 0]
 
@@ -474,7 +481,7 @@ class _Setup:
 
 
 def _setup(scene, gauge_stack, gauge: Gauge, options: Options, noise, gauge_noise,
-           gauge_levels) -> _Setup:
+           gauge_levels, tables=None) -> _Setup:
     """Signatures of both stacks, the noise model, and the capture to match."""
     m = scene.shape[0]
     t0 = time.perf_counter()
@@ -500,7 +507,7 @@ def _setup(scene, gauge_stack, gauge: Gauge, options: Options, noise, gauge_nois
         gauge_ov=gauge_sig.ov, gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
         gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
         gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
-        scene_invalid=scene_sig.band_invalid_value.any(axis=-1))
+        scene_invalid=scene_sig.band_invalid_value.any(axis=-1), tables=tables)
     return _Setup(capture, scene_sig, gauge_sig, model, min_norm, usable_gauge, said,
                   time.perf_counter() - t0)
 

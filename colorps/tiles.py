@@ -41,6 +41,7 @@ import numpy as np
 
 from .errors import InputError
 from .gauge import Gauge
+from .matching import TABLE_CACHE_MIB, GaugeTables
 from .noise import NoiseModel
 from .options import Options
 from .reconstruct import (LowSolvedWarning, Reconstruction, Timings, _median, _percentile,
@@ -61,7 +62,8 @@ DEFAULT_TILE_ROWS = 256
 #: WORKING_BYTES per byte of the tile's float32 input (6.2 measured; 8 leaves a
 #: margin); after them FINISH_BYTES per pixel for the integration and the files
 #: written (102 measured). A tile has at least MIN_TILE_ROWS rows. An untiled run
-#: is the same with the whole scene as its one tile.
+#: is the same with the whole scene as its one tile. The grids kept for the
+#: tiles (matching.TABLE_CACHE_MIB) come on top while the tiles run.
 BASE_MIB = 250
 MAP_BYTES = 60
 TILE_FIXED_MIB = 300
@@ -87,7 +89,7 @@ def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int]) -> int |
     mib = 2 ** 20
     limit = limit_gib * 2 ** 30
     finish = BASE_MIB * mib + FINISH_BYTES * h * w
-    budget = limit - BASE_MIB * mib - MAP_BYTES * h * w - TILE_FIXED_MIB * mib
+    budget = limit - (BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * mib - MAP_BYTES * h * w
     row_bytes = WORKING_BYTES * 4 * m * c * w
     if finish <= limit and budget >= row_bytes * h:
         return None
@@ -133,7 +135,7 @@ def tile_rows(height: int, tile: int) -> list[tuple[int, int]]:
 
 
 def _first_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
-                gauge_levels):
+                gauge_levels, tables):
     """A tile's first residuals; ``scene[:, rows]`` is the tile, ``tile_mask`` the
     pixels to match (only its rows with any are processed: each pixel's
     residual is its own)."""
@@ -144,11 +146,12 @@ def _first_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, g
         warnings.simplefilter("ignore")  # the whole run reports, once
         return first_residuals(scene[:, rows[0]:rows[1]][:, keep], gauge_stack, gauge,
                                options, mask=tile_mask[keep], noise=noise,
-                               gauge_noise=gauge_noise, gauge_levels=gauge_levels)
+                               gauge_noise=gauge_noise, gauge_levels=gauge_levels,
+                               tables=tables)
 
 
 def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
-               gauge_levels, model_scale):
+               gauge_levels, tables, model_scale):
     """A tile's reconstruction, the warnings it raised (but low-solved ones), and
     its mean image (the preview of the outputs)."""
     piece = scene[:, rows[0]:rows[1]]
@@ -156,7 +159,8 @@ def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, ga
         warnings.simplefilter("always")
         result = reconstruct(piece, gauge_stack, gauge, options,
                              mask=tile_mask, noise=noise, gauge_noise=gauge_noise,
-                             gauge_levels=gauge_levels, model_scale=model_scale)
+                             gauge_levels=gauge_levels, model_scale=model_scale,
+                             tables=tables)
     said = [(w.category, str(w.message)) for w in caught
             if not issubclass(w.category, LowSolvedWarning)]
     return result, said, np.asarray(piece, dtype=np.float32).mean(axis=0)
@@ -214,8 +218,9 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
         raise InputError(f"mask: shape {mask.shape} differs from the scene's {(h, w)}")
     ranges = tile_rows(h, tile)
     masks = [None if mask is None else mask[a:b] for a, b in ranges]
+    # One GaugeTables for every tile: each table's grid is built once (per worker).
     shared = dict(options=options, noise=noise, gauge_noise=gauge_noise,
-                  gauge_levels=gauge_levels)
+                  gauge_levels=gauge_levels, tables=GaugeTables())
     run = _in_process if client is None else _on_dask
     # The first pass matches only the pixels the model scale is measured on.
     whole = mask if mask is not None else np.ones((h, w), dtype=bool)
@@ -228,6 +233,7 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
         dict(shared, model_scale=model_scale), progress, "tiles",
         lambda k, outcome: joined.add(k, ranges[k], *outcome))
+    del shared  # the grids kept for the tiles
     result = _stitch(joined, mask if mask is not None else np.ones((h, w), bool),
                      time.perf_counter() - t_start)
     release_freed_memory()
@@ -302,8 +308,10 @@ def _on_dask(client, task, scene, ranges, masks, gauge_stack, gauge, shared, pro
     from dask.distributed import as_completed
     from dask.distributed import progress as dask_progress
 
-    gauge_stack, gauge = client.scatter([np.ascontiguousarray(gauge_stack), gauge],
-                                        broadcast=True, hash=False)
+    gauge_stack, gauge, tables = client.scatter(
+        [np.ascontiguousarray(gauge_stack), gauge, shared["tables"]], broadcast=True,
+        hash=False)
+    shared = dict(shared, tables=tables)
     futures = {}
     for k, (rows, tile_mask) in enumerate(zip(ranges, masks)):
         piece, piece_rows = scene, rows  # files: the worker reads its own rows

@@ -71,6 +71,32 @@ def test_model_scale_from_a_lattice_of_pixels_tiled_or_not(messy, monkeypatch):
         assert_same(whole, reconstruct_tiled(scene, gauge_stack, gauge, tile=tile, mask=mask))
 
 
+def test_gauge_tables_build_each_grid_once_for_all_tiles(messy):
+    import pickle
+
+    from colorps.matching import GaugeTables
+
+    scene, gauge_stack, gauge, mask = messy
+    whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
+    tables = GaugeTables()
+    pieces = [reconstruct(scene[:, a:b], gauge_stack, gauge, mask=mask[a:b],
+                          model_scale=whole.stats.model_scale, tables=tables)
+              for a, b in tile_rows(72, 24)]
+    assert tables.reused > 0 and 0 < tables.bytes <= tables.max_bytes
+    alone = [reconstruct(scene[:, a:b], gauge_stack, gauge, mask=mask[a:b],
+                         model_scale=whole.stats.model_scale) for a, b in tile_rows(72, 24)]
+    for kept, built in zip(pieces, alone):  # the same matches either way
+        assert np.array_equal(kept.normals, built.normals, equal_nan=True)
+    # Another gauge (here: the same sphere, other lights) is refused, by name.
+    with pytest.raises(InputError, match="another gauge"):
+        reconstruct(scene, gauge_stack[::-1], gauge, mask=mask, tables=tables)
+    # Sent to a Dask worker it travels empty, keeping its fingerprint.
+    copy = pickle.loads(pickle.dumps(tables))
+    assert copy.bytes == 0 and copy.max_bytes == tables.max_bytes
+    with pytest.raises(InputError, match="another gauge"):
+        reconstruct(scene, gauge_stack[::-1], gauge, mask=mask, tables=copy)
+
+
 def test_each_tile_alone_would_scale_differently(messy):
     """Without the shared model scale, tiles would not reproduce the whole run."""
     scene, gauge_stack, gauge, mask = messy
@@ -143,6 +169,7 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
 
 
 def test_memory_limit_chooses_the_tile_rows():
+    from colorps.matching import TABLE_CACHE_MIB
     from colorps.tiles import (BASE_MIB, MAP_BYTES, MIN_TILE_ROWS, TILE_FIXED_MIB,
                                WORKING_BYTES, rows_for_memory)
 
@@ -150,7 +177,7 @@ def test_memory_limit_chooses_the_tile_rows():
     assert rows_for_memory(64.0, shape) is None  # fits whole
     rows = rows_for_memory(2.0, shape)  # 16 MP under 2 GiB: in tiles
     row_bytes = WORKING_BYTES * 4 * 8 * 3 * 4096
-    fixed = (BASE_MIB + TILE_FIXED_MIB) * 2 ** 20 + MAP_BYTES * 4096 * 4096
+    fixed = (BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + MAP_BYTES * 4096 * 4096
     assert MIN_TILE_ROWS <= rows < 4096
     assert fixed + rows * row_bytes <= 2 * 2 ** 30 < fixed + (rows + 1) * row_bytes
     assert rows_for_memory(2.5, shape) > rows
@@ -172,9 +199,10 @@ def test_memory_limit_on_the_command_line(tmp_path, capsys):
     report = json.loads((tmp_path / "ok" / "report.json").read_text())
     assert report["options"]["memory_limit_gib"] == 4 and report["options"]["tile"] is None
     # A limit just above 20 rows' worth tiles the run, with the untiled maps.
+    from colorps.matching import TABLE_CACHE_MIB
     from colorps.tiles import BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES
 
-    limit = ((BASE_MIB + TILE_FIXED_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
+    limit = ((BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
              + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48) / 2 ** 30
     assert main(args + ["--out", str(tmp_path / "tiled"), "--memory-limit", repr(limit)]) == 0
     report = json.loads((tmp_path / "tiled" / "report.json").read_text())
