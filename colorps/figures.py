@@ -10,7 +10,7 @@ import numpy as np
 
 from .io import srgb_encode
 
-__all__ = ["shaded_relief", "overview", "as_rgb"]
+__all__ = ["shaded_relief", "overview", "overview_step", "as_rgb"]
 
 #: The overview's panels are drawn from images subsampled to at most this many
 #: pixels on a side (a panel is 320 pixels wide): drawing a 4096-pixel image
@@ -70,6 +70,12 @@ def shaded_relief(height, *, azimuth_deg: float = 135.0, elevation_deg: float = 
     return np.where(inside, 0.1 + 0.9 * np.clip(shade, 0.0, 1.0), 0.0).astype(np.float32)
 
 
+def overview_step(shape: tuple[int, ...]) -> int:
+    """The overview draws every s-th row and column of an (H, W, ...) image:
+    s = ceil(max(H, W) / OVERVIEW_SIDE), at least 1."""
+    return max(1, -(-max(shape[:2]) // OVERVIEW_SIDE))
+
+
 def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.ndarray:
     """Side-by-side figure: scene photo, normal map, albedo, shaded relief.
 
@@ -81,7 +87,8 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
     Parameters
     ----------
     scene_image : (H, W, c) array_like
-        One linear scene image (e.g. the mean of the stack).
+        One linear scene image (e.g. the mean of the stack), or only the pixels
+        drawn of it: every s-th row and column, s = :func:`overview_step`.
     normals : (H, W, 3) array_like
         Camera-space normals (NaN = unsolved).
     albedo : (H, W, c) array_like
@@ -98,10 +105,12 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
     """
     import OpenImageIO as oiio
 
-    h, w = np.shape(normals)[:2]
-    step = max(1, -(-max(h, w) // OVERVIEW_SIDE))  # ceil
+    step = overview_step(np.shape(normals))
     pick = (slice(None, None, step), slice(None, None, step))
-    scene_image, normals, albedo = (np.asarray(a)[pick] for a in (scene_image, normals, albedo))
+    normals, albedo = (np.asarray(a)[pick] for a in (normals, albedo))
+    scene_image = np.asarray(scene_image)
+    if scene_image.shape[:2] != normals.shape[:2]:
+        scene_image = scene_image[pick]
     photo = as_rgb(scene_image)
     peak = np.nanpercentile(photo, 99.5) if np.isfinite(photo).any() else 1.0
     panels = [("scene (mean image)", srgb_encode(photo / (peak if peak > 0 else 1.0))),

@@ -126,7 +126,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     channel_names : sequence of str, optional
         Names of the input bands (default R, G, B or Y / B0, B1, ...).
     scene_preview : (H, W, c) ndarray, optional
-        Linear scene image for overview.png (default: the albedo).
+        Linear scene image for overview.png (default: the albedo), whole or at
+        the pixels it draws (see :func:`colorps.figures.overview`).
     report : dict, optional
         Inputs and options to record in report.json beside the statistics.
     mesh : sequence of {"ply", "obj"}, optional

@@ -77,6 +77,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         With its height map when ``options.height``.
     """
     from .brdf import BRDF, fit_scene_brdf
+    from .figures import overview_step
     from .gauge import Gauge, find_sphere
     from .lights import read_lights
     from .noise import NoiseModel, estimate_noise
@@ -193,7 +194,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
                              noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,
                              progress=progress)
-        preview = scene.mean(axis=0)
+        step = overview_step(scene.shape[1:3])
+        preview = scene[:, ::step, ::step].mean(axis=0)  # what the overview draws
     del scene  # the stack is not needed past here: free it for integration and writing
     _check_solved(result, scene_paths, gauge_paths, mask_path)
 

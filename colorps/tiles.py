@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .figures import overview_step
 from .gauge import Gauge
 from .matching import TABLE_CACHE_MIB, GaugeTables
 from .noise import NoiseModel
@@ -153,7 +154,7 @@ def _first_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, g
 def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, gauge_noise,
                gauge_levels, tables, model_scale):
     """A tile's reconstruction, the warnings it raised (but low-solved ones), and
-    its mean image (the preview of the outputs)."""
+    its mean image at the rows and columns the overview draws (the preview)."""
     piece = scene[:, rows[0]:rows[1]]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -163,7 +164,9 @@ def _tile_task(scene, rows, tile_mask, gauge_stack, gauge, *, options, noise, ga
                              tables=tables)
     said = [(w.category, str(w.message)) for w in caught
             if not issubclass(w.category, LowSolvedWarning)]
-    return result, said, np.asarray(piece, dtype=np.float32).mean(axis=0)
+    step = overview_step(scene.shape[1:3])
+    drawn = piece[:, (-rows[0]) % step::step, ::step]
+    return result, said, np.asarray(drawn, dtype=np.float32).mean(axis=0)
 
 
 def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None = None, *,
@@ -185,8 +188,10 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     progress : bool, optional
         A progress bar over tiles (Dask's own with a client).
     return_preview : bool, optional
-        Also return the scene's mean image, (H, W, c) float32, made from the
-        tiles as they are read (the files are not read again for it).
+        Also return the scene's mean image at the pixels the overview draws
+        (every s-th row and column, s = :func:`colorps.figures.overview_step`),
+        float32, made from the tiles as they are read (the files are not read
+        again for it).
     gauge_stack, gauge, options, mask, noise, gauge_noise, gauge_levels
         As for :func:`colorps.reconstruct`.
 
@@ -229,7 +234,7 @@ def reconstruct_tiled(scene, gauge_stack, gauge: Gauge, options: Options | None 
     run(client, _first_task, scene, ranges, [sampled[a:b] for a, b in ranges], gauge_stack,
         gauge, shared, progress, "first matches", lambda k, found: residuals.append(found))
     model_scale = measured_model_scale(np.concatenate(residuals))
-    joined = _Joined(h, return_preview)
+    joined = _Joined(h, overview_step((h, w)) if return_preview else None)
     run(client, _tile_task, scene, ranges, masks, gauge_stack, gauge,
         dict(shared, model_scale=model_scale), progress, "tiles",
         lambda k, outcome: joined.add(k, ranges[k], *outcome))
@@ -244,13 +249,13 @@ class _Joined:
     """The whole-image maps, filled in as tiles finish (in any order); each
     tile's maps are let go once copied, so they are never held twice."""
 
-    def __init__(self, height: int, with_preview: bool) -> None:
+    def __init__(self, height: int, preview_step: int | None) -> None:
         self.height = height
         self.maps: dict[str, np.ndarray] = {}
         self.stats: dict[int, object] = {}
         self.said: dict[int, list] = {}
         self.matched: dict[int, int] = {}
-        self.with_preview = with_preview
+        self.preview_step = preview_step
         self.preview = None
 
     def add(self, k: int, rows: tuple[int, int], result: Reconstruction, said, mean) -> None:
@@ -259,10 +264,13 @@ class _Joined:
             if name not in self.maps:
                 self.maps[name] = np.empty((self.height,) + piece.shape[1:], piece.dtype)
             self.maps[name][rows[0]:rows[1]] = piece
-        if self.with_preview:
+        if self.preview_step is not None:
+            step = self.preview_step
             if self.preview is None:
-                self.preview = np.empty((self.height,) + mean.shape[1:], np.float32)
-            self.preview[rows[0]:rows[1]] = mean
+                self.preview = np.empty((-(-self.height // step),) + mean.shape[1:],
+                                        np.float32)
+            first = -(-rows[0] // step)  # the first drawn row in this tile
+            self.preview[first:first + len(mean)] = mean
         self.stats[k] = result.stats
         self.said[k] = said
         self.matched[k] = int(np.isfinite(result.quality).sum())

@@ -117,6 +117,18 @@ def test_tiles_read_from_files(messy, tmp_path):
     np.testing.assert_allclose(preview, scene.mean(axis=0), rtol=1e-6, atol=1e-7)
 
 
+def test_tiled_preview_is_the_mean_at_the_pixels_the_overview_draws(messy, monkeypatch):
+    import colorps.figures as figures
+
+    scene, gauge_stack, gauge, mask = messy
+    monkeypatch.setattr(figures, "OVERVIEW_SIDE", 20)  # every 4th row and column
+    assert figures.overview_step(scene.shape[1:3]) == 4
+    _, preview = reconstruct_tiled(scene, gauge_stack, gauge, tile=25, mask=mask,
+                                   return_preview=True)  # tiles start off the lattice
+    np.testing.assert_allclose(preview, scene[:, ::4, ::4].mean(axis=0), rtol=1e-6,
+                               atol=1e-7)
+
+
 def test_tile_arguments_are_checked(messy):
     scene, gauge_stack, gauge, mask = messy
     assert tile_rows(10, 4) == [(0, 4), (4, 8), (8, 10)]
