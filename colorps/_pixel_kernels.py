@@ -150,6 +150,118 @@ def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albed
             out[p, k] = ratio * gauge_albedo[k]
 
 
+@njit(cache=True, inline="always")
+def _variance(value, read2, gain, pixel_kind, levels, table):
+    """sigma(v)^2 = read^2 + gain v + q(v)^2 of one measurement (see mean_variance)."""
+    v = np.float64(value)
+    if not (v > 0.0) or not np.isfinite(v):
+        v = 0.0
+    variance = read2 + gain * v
+    if pixel_kind == 1:
+        # One half-float unit at v: 2^(floor(log2 v) - 10), from the
+        # binary exponent (frexp: v = f 2^e, f in [0.5, 1)).
+        ulp = math.ldexp(1.0, math.frexp(max(v, 2.0 ** -14))[1] - 11)
+        variance += ulp * ulp / 12.0
+    elif pixel_kind == 2:
+        q = np.interp(v, levels, table)
+        variance += q * q
+    return variance
+
+
+@njit(cache=True, parallel=True)
+def group_queries(scene_ov, ys, xs, bands, lights, weights, queries, norm2):
+    """The queries of a group of pixels: weighted unit signatures over some lights.
+
+    Parameters
+    ----------
+    scene_ov : (H, W, B, m) float32
+    ys, xs : (P,) int64
+        The pixels.
+    bands, lights : (K,) and (L,) int64
+        The bands matched and the lights used.
+    weights : (K,) float32
+        Band weights.
+
+    Outputs (written in place)
+    --------------------------
+    queries : (P, K * L) float32
+        Band-major, weights[k] times band k's OV over ``lights`` divided by its
+        norm (float64 division, rounded to float32; a zero OV stays zero).
+    norm2 : (P, K) float64
+        Squared norms of those OVs.
+    """
+    n_lights = lights.size
+    for p in prange(ys.size):
+        y, x = ys[p], xs[p]
+        for k in range(bands.size):
+            b = bands[k]
+            total = 0.0
+            for j in range(n_lights):
+                v = np.float64(scene_ov[y, x, b, lights[j]])
+                total += v * v
+            norm2[p, k] = total
+            norm = np.sqrt(total) if total > 0.0 else 1.0
+            for j in range(n_lights):
+                unit = np.float32(np.float64(scene_ov[y, x, b, lights[j]]) / norm)
+                queries[p, k * n_lights + j] = unit * weights[k]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2,
+                    gauge_var, resolution, read2, gain, pixel_kind, levels, table, floor2,
+                    residual, distance):
+    """Residual and signature distance of each pixel's match (colorps.residuals).
+
+    Parameters
+    ----------
+    scene_ov, ys, xs, bands, lights
+        As for group_queries.
+    rows : (P,) int64
+        Each pixel's gauge match (flat gauge pixel index).
+    gauge_sig : (Hg * Wg, B, L) float32
+        Unit gauge signatures over ``lights``.
+    gauge_norm2, gauge_var, resolution : (Hg * Wg, B)
+        Squared OV norms, mean measurement variances and h^2 of the gauge.
+    read2, gain, pixel_kind, levels, table
+        The scene's noise model (see mean_variance).
+    floor2 : float
+        MODEL_FLOOR^2.
+
+    Outputs (written in place)
+    --------------------------
+    residual : (P,) float32
+        sqrt(mean over bands of d_k / E_k).
+    distance : (P,) float32
+        sqrt(mean over bands of d_k): the plain signature distance per band.
+    """
+    n_lights, n_bands = lights.size, bands.size
+    for p in prange(ys.size):
+        y, x, q = ys[p], xs[p], rows[p]
+        ratio_sum = 0.0
+        d_sum = 0.0
+        for k in range(n_bands):
+            b = bands[k]
+            total = 0.0
+            variance = 0.0
+            for j in range(n_lights):
+                v = scene_ov[y, x, b, lights[j]]
+                total += np.float64(v) * np.float64(v)
+                variance += _variance(v, read2, gain, pixel_kind, levels, table)
+            variance = np.float64(np.float32(variance / n_lights))
+            norm = np.sqrt(total) if total > 0.0 else 1.0
+            d = 0.0
+            for j in range(n_lights):
+                unit = np.float32(np.float64(scene_ov[y, x, b, lights[j]]) / norm)
+                diff = np.float64(unit) - np.float64(gauge_sig[q, b, j])
+                d += diff * diff
+            expected = (n_lights - 1) * (variance / total + gauge_var[q, b] / gauge_norm2[q, b]) \
+                + resolution[q, b] / 6.0 + floor2
+            ratio_sum += d / max(expected, 1e-30)
+            d_sum += d
+        residual[p] = np.sqrt(ratio_sum / n_bands)
+        distance[p] = np.sqrt(d_sum / n_bands)
+
+
 @njit(cache=True, parallel=True)
 def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
     """Mean over the last axis of sigma(v)^2 = read^2 + gain v + q(v)^2.
@@ -170,19 +282,7 @@ def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
     for p in prange(n):
         total = 0.0
         for i in range(m):
-            v = np.float64(values[p, i])
-            if not (v > 0.0) or not np.isfinite(v):
-                v = 0.0
-            variance = read2 + gain * v
-            if pixel_kind == 1:
-                # One half-float unit at v: 2^(floor(log2 v) - 10), from the
-                # binary exponent (frexp: v = f 2^e, f in [0.5, 1)).
-                ulp = math.ldexp(1.0, math.frexp(max(v, 2.0 ** -14))[1] - 11)
-                variance += ulp * ulp / 12.0
-            elif pixel_kind == 2:
-                q = np.interp(v, levels, table)
-                variance += q * q
-            total += variance
+            total += _variance(values[p, i], read2, gain, pixel_kind, levels, table)
         out[p] = total / m
 
 

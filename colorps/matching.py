@@ -25,7 +25,8 @@ import numpy as np
 from .errors import InputError
 from .grid import BucketGrid
 from .noise import NoiseModel
-from .residuals import band_variance, match_residual, table_resolution, unit_rows
+from . import _pixel_kernels
+from .residuals import match_residual, table_resolution, unit_rows
 
 __all__ = ["Capture", "GaugeTables", "GroupResult", "weight_levels", "nearest"]
 
@@ -264,10 +265,12 @@ class Capture:
                                0.0, time.perf_counter() - t0, 0.0)
         table = (gauge.signatures[table_px][:, band_list] * scale).reshape(-1, len(bands) *
                                                                            len(lights))
-        ov = self.scene_ov[ys, xs][:, band_list][..., list(lights)]
-        sig, norms = unit_rows(ov)
-        queries = np.ascontiguousarray((sig * scale).reshape(n_rows, -1))
         table = np.ascontiguousarray(table)
+        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
+        band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
+        queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
+        _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
+                                     scale[:, 0], queries, np.empty((n_rows, len(bands))))
         sample = queries[:: max(1, n_rows // sample_size)]
         t_grid = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -276,14 +279,10 @@ class Capture:
                                          key=(bands, levels, lights, grid_n))
         rows = np.flatnonzero(table_px)[found]
         t_lookup = time.perf_counter() - t0
-        g = gauge.signatures.reshape(-1, self.bands, len(lights))[rows][:, band_list]
-        distance = np.sqrt(((sig - g) ** 2).sum(axis=(1, 2)) / len(bands)).astype(np.float32)
-        residual = match_residual(
-            sig, g, norms ** 2,
-            gauge.norm2.reshape(-1, self.bands)[rows][:, band_list],
-            band_variance(ov, self.model),
-            gauge.variance.reshape(-1, self.bands)[rows][:, band_list],
-            gauge.resolution.reshape(-1, self.bands)[rows][:, band_list],
-            np.ones((n_rows, len(bands)), dtype=bool))
+        residual, distance = match_residual(
+            self.scene_ov, ys, xs, band_index, light_index, rows,
+            gauge.signatures.reshape(-1, self.bands, len(lights)),
+            gauge.norm2.reshape(-1, self.bands), gauge.variance.reshape(-1, self.bands),
+            gauge.resolution.reshape(-1, self.bands), self.model)
         return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
                            t_grid, t_lookup)

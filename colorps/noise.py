@@ -146,13 +146,18 @@ class NoiseModel:
 
         v = np.asarray(values, dtype=np.float32)
         flat = np.ascontiguousarray(v.reshape(-1, v.shape[-1]))
+        out = np.empty(flat.shape[0], dtype=np.float32)
+        mean_variance(flat, *self.kernel_args(), out)
+        return out.reshape(v.shape[:-1])
+
+    def kernel_args(self) -> tuple:
+        """The model as the compiled kernels take it: (read^2, gain, pixel kind
+        0 float / 1 half / 2 integer, quantisation levels, their sigma)."""
         levels = table = np.zeros(1)
         if self.pixel_type == "int":
             levels, table = _quantisation_table(self.top_code, self.encoding)
-        out = np.empty(flat.shape[0], dtype=np.float32)
-        mean_variance(flat, float(self.read) ** 2, float(self.gain),
-                      {"float": 0, "half": 1, "int": 2}[self.pixel_type], levels, table, out)
-        return out.reshape(v.shape[:-1])
+        return (float(self.read) ** 2, float(self.gain),
+                {"float": 0, "half": 1, "int": 2}[self.pixel_type], levels, table)
 
     def as_dict(self) -> dict:
         return dict(read=self.read, gain=self.gain, pixel_type=self.pixel_type,

@@ -77,32 +77,47 @@ def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:
     return out
 
 
-def match_residual(scene_sig, gauge_sig, scene_norm2, gauge_norm2, scene_var, gauge_var,
-                   resolution, bands_used) -> np.ndarray:
-    """The residual r of matched pixels (see the module docstring).
+def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2,
+                   gauge_var, resolution, model: NoiseModel
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The residual r of matched pixels (see the module docstring), and their
+    plain signature distance per band, sqrt(mean over bands of d_k).
 
     Parameters
     ----------
-    scene_sig, gauge_sig : (P, B, m') ndarray
-        Unit signatures over the lights used, of the pixels and their matches.
-    scene_norm2, gauge_norm2, scene_var, gauge_var : (P, B) ndarray
-        Squared OV norms and mean measurement variances over those lights.
-    resolution : (P, B) ndarray
-        h^2 of each match (:func:`table_resolution`).
-    bands_used : (P, B) ndarray of bool
+    scene_ov : (H, W, B, m) ndarray of float32
+        The scene's observation vectors.
+    ys, xs : (P,) ndarray of int
+        The matched pixels.
+    bands, lights : sequence of int
+        The bands matched and the lights used (m' of them).
+    rows : (P,) ndarray of int
+        Each pixel's match: a flat gauge pixel index.
+    gauge_sig : (Hg * Wg, B, m') ndarray of float32
+        Unit gauge signatures over ``lights``.
+    gauge_norm2, gauge_var : (Hg * Wg, B) ndarray
+        Squared gauge OV norms and mean measurement variances over ``lights``.
+    resolution : (Hg * Wg, B) ndarray
+        h^2 of each gauge pixel (:func:`table_resolution`).
+    model : NoiseModel
+        Of the scene's measurements.
 
     Returns
     -------
-    (P,) ndarray of float32
+    residual, distance : (P,) ndarray of float32
     """
-    m_used = scene_sig.shape[-1]
-    d = ((scene_sig.astype(np.float64) - gauge_sig) ** 2).sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        expected = (m_used - 1) * (scene_var / scene_norm2 + gauge_var / gauge_norm2) \
-            + resolution / 6.0 + MODEL_FLOOR ** 2
-        ratio = np.where(bands_used, d / np.maximum(expected, 1e-30), 0.0)
-    bands = np.maximum(bands_used.sum(axis=-1), 1)
-    return np.sqrt(ratio.sum(axis=-1) / bands).astype(np.float32)
+    from . import _pixel_kernels
+
+    n = len(ys)
+    residual = np.empty(n, dtype=np.float32)
+    distance = np.empty(n, dtype=np.float32)
+    _pixel_kernels.group_residuals(
+        scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
+        np.asarray(bands, np.int64), np.asarray(lights, np.int64), np.asarray(rows, np.int64),
+        np.ascontiguousarray(gauge_sig, np.float32), np.ascontiguousarray(gauge_norm2),
+        np.ascontiguousarray(gauge_var), np.ascontiguousarray(resolution),
+        *model.kernel_args(), MODEL_FLOOR ** 2, residual, distance)
+    return residual, distance
 
 
 def light_residuals(scene_ov, gauge_ov, lights, bands_used, model: NoiseModel
