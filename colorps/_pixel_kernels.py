@@ -169,7 +169,7 @@ def _variance(value, read2, gain, pixel_kind, levels, table):
 
 
 @njit(cache=True, parallel=True)
-def group_queries(scene_ov, ys, xs, bands, lights, weights, queries, norm2):
+def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
     """The queries of a group of pixels: weighted unit signatures over some lights.
 
     Parameters
@@ -187,8 +187,6 @@ def group_queries(scene_ov, ys, xs, bands, lights, weights, queries, norm2):
     queries : (P, K * L) float32
         Band-major, weights[k] times band k's OV over ``lights`` divided by its
         norm (float64 division, rounded to float32; a zero OV stays zero).
-    norm2 : (P, K) float64
-        Squared norms of those OVs.
     """
     n_lights = lights.size
     for p in prange(ys.size):
@@ -199,7 +197,6 @@ def group_queries(scene_ov, ys, xs, bands, lights, weights, queries, norm2):
             for j in range(n_lights):
                 v = np.float64(scene_ov[y, x, b, lights[j]])
                 total += v * v
-            norm2[p, k] = total
             norm = np.sqrt(total) if total > 0.0 else 1.0
             for j in range(n_lights):
                 unit = np.float32(np.float64(scene_ov[y, x, b, lights[j]]) / norm)

@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import _pixel_kernels
 from .errors import InputError
 from .grid import BucketGrid
 from .noise import NoiseModel
-from . import _pixel_kernels
 from .residuals import match_residual, table_resolution, unit_rows
 
 __all__ = ["Capture", "GaugeTables", "GroupResult", "weight_levels", "nearest"]
@@ -78,7 +78,6 @@ class GaugeTables:
 
         self.max_bytes = int(max_mib * 2 ** 20)
         self.bytes = 0
-        self.built = 0
         self.reused = 0
         self._grids: dict = {}
         self._fingerprint = None
@@ -102,7 +101,6 @@ class GaugeTables:
     def keep(self, key, grid: BucketGrid) -> None:
         size = grid.nbytes
         with self._lock:
-            self.built += 1
             if key not in self._grids and self.bytes + size <= self.max_bytes:
                 self._grids[key] = grid
                 self.bytes += size
@@ -270,7 +268,7 @@ class Capture:
         band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
         queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
         _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
-                                     scale[:, 0], queries, np.empty((n_rows, len(bands))))
+                                     scale[:, 0], queries)
         sample = queries[:: max(1, n_rows // sample_size)]
         t_grid = time.perf_counter() - t0
         t0 = time.perf_counter()
