@@ -260,6 +260,28 @@ def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm
 
 
 @njit(cache=True, parallel=True)
+def band_snr(scene_ov, ys, xs, valid, read2, gain, pixel_kind, levels, table, out):
+    """|S_k| / sigma_k of each band of pixels (ys, xs), sigma_k^2 the mean variance
+    of its measurements (float32-rounded, as mean_variance gives it); 0 where
+    ``valid`` (P, B) is false. scene_ov (H, W, B, m) float32; out (P, B) float64."""
+    n_bands, m = scene_ov.shape[2], scene_ov.shape[3]
+    for p in prange(ys.size):
+        y, x = ys[p], xs[p]
+        for b in range(n_bands):
+            if not valid[p, b]:
+                out[p, b] = 0.0
+                continue
+            total = 0.0
+            variance = 0.0
+            for i in range(m):
+                v = scene_ov[y, x, b, i]
+                total += np.float64(v) * np.float64(v)
+                variance += _variance(v, read2, gain, pixel_kind, levels, table)
+            variance = np.float64(np.float32(variance / m))
+            out[p, b] = np.sqrt(total) / np.sqrt(max(variance, 1e-30))
+
+
+@njit(cache=True, parallel=True)
 def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
     """Mean over the last axis of sigma(v)^2 = read^2 + gain v + q(v)^2.
 

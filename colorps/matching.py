@@ -28,7 +28,7 @@ from .grid import BucketGrid
 from .noise import NoiseModel
 from .residuals import match_residual, table_resolution, unit_rows
 
-__all__ = ["Capture", "GaugeTables", "GroupResult", "weight_levels", "nearest"]
+__all__ = ["Capture", "GaugeTables", "GroupResult", "band_snr", "weight_levels", "nearest"]
 
 # ---------------------------------------------------------------- tuning
 #: Band weights are 2^level, level = round(log2(relative SNR)) in DROP_LEVEL + 1 .. 0;
@@ -44,20 +44,50 @@ BRUTE_FORCE_BLOCK = 1 << 22
 TABLE_CACHE_MIB = 192
 
 
-def weight_levels(norms: np.ndarray, variance: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def weight_levels(snr: np.ndarray) -> np.ndarray:
     """Per-band weight levels (int8; DROP_LEVEL or below: drop) of pixels.
 
     Parameters
     ----------
-    norms, variance, valid : (P, B) ndarray
-        OV norms, mean measurement variances, and usable bands.
+    snr : (P, B) ndarray
+        Each band's signal-to-noise ratio |S_k| / sigma_k (0 where the band is
+        unusable; :func:`band_snr`).
+
+    Returns
+    -------
+    (P, B) ndarray of int8
+        round(log2(snr_k / max_j snr_j)) clipped to DROP_LEVEL .. 0 (half-way
+        cases to even); DROP_LEVEL where snr_k is 0.
     """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        snr = np.where(valid, norms / np.sqrt(np.maximum(variance, 1e-30)), 0.0)
-        best = snr.max(axis=-1, keepdims=True)
-        rel = np.log2(snr / np.where(best > 0, best, 1.0))
-    levels = np.clip(np.round(np.nan_to_num(rel, nan=-99.0, neginf=-99.0)), DROP_LEVEL, 0)
-    return levels.astype(np.int8)
+    snr = np.asarray(snr, dtype=np.float64)
+    best = snr.max(axis=-1, keepdims=True)
+    rel = np.divide(snr, best, out=np.zeros_like(snr), where=best > 0)
+    with np.errstate(divide="ignore"):
+        levels = np.rint(np.log2(rel))
+    return np.clip(levels, DROP_LEVEL, 0).astype(np.int8)
+
+
+def band_snr(scene_ov: np.ndarray, ys: np.ndarray, xs: np.ndarray, valid: np.ndarray,
+             model: NoiseModel) -> np.ndarray:
+    """Signal-to-noise ratio |S_k| / sigma_k of each band of pixels (ys, xs).
+
+    Parameters
+    ----------
+    scene_ov : (H, W, B, m) ndarray of float32
+    ys, xs : (P,) ndarray of int
+    valid : (P, B) ndarray of bool
+        Usable bands (the others get 0).
+    model : NoiseModel
+        sigma_k^2 is the mean over the m measurements of the model's variance.
+
+    Returns
+    -------
+    (P, B) ndarray of float64
+    """
+    out = np.empty(valid.shape, dtype=np.float64)
+    _pixel_kernels.band_snr(scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
+                            np.ascontiguousarray(valid, dtype=bool), *model.kernel_args(), out)
+    return out
 
 
 class GaugeTables:

@@ -34,7 +34,7 @@ import numpy as np
 
 from .noise import NoiseModel
 
-__all__ = ["band_variance", "table_resolution", "match_residual", "light_residuals",
+__all__ = ["table_resolution", "match_residual", "light_residuals",
            "unit_rows", "MODEL_FLOOR"]
 
 #: Signature residual per band (unit vectors; 0.005 is about 0.3 degrees between
@@ -47,11 +47,6 @@ def unit_rows(ov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
     safe = np.where(norms > 0, norms, 1.0)
     return (ov / safe[..., None]).astype(np.float32), norms
-
-
-def band_variance(ov: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """Mean measurement variance per band: (..., B, m) OVs -> (..., B)."""
-    return model.mean_variance(ov)
 
 
 def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:

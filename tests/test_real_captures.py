@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from colorps import Gauge, GaugeError, angular_error, find_sphere, reconstruct, synth
-from colorps.matching import Capture, weight_levels
+from colorps.matching import Capture, band_snr, weight_levels
 from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
 from colorps.signatures import compute_signatures
 
@@ -59,10 +59,24 @@ def test_half_float_quantisation_is_one_half_ulp_over_sqrt12():
 
 # ------------------------------------------------------------------ band weights
 def test_weight_levels_follow_snr():
-    norms = np.array([[1.0, 0.5, 0.01], [0.2, 0.2, 0.2]])
-    variance = np.full((2, 3), 1e-4)
-    levels = weight_levels(norms, variance, np.ones((2, 3), bool))
-    assert levels.tolist() == [[0, -1, -3], [0, 0, 0]]
+    snr = np.array([[100.0, 50.0, 1.0], [20.0, 20.0, 20.0], [0.0, 0.0, 0.0],
+                    [8.0, 2.0, 0.0]])
+    assert weight_levels(snr).tolist() == [[0, -1, -3], [0, 0, 0], [-3, -3, -3],
+                                           [0, -2, -3]]
+
+
+@pytest.mark.parametrize("pixel_type", ["float", "half"])
+def test_band_snr_is_norm_over_model_sigma(pixel_type):
+    rng = np.random.default_rng(3)
+    ov = rng.uniform(0.0, 1.0, (4, 5, 3, 6)).astype(np.float32)
+    ys, xs = np.nonzero(rng.uniform(size=(4, 5)) > 0.3)
+    valid = rng.uniform(size=(len(ys), 3)) > 0.2
+    model = NoiseModel(read=0.01, gain=0.002, pixel_type=pixel_type)
+    got = band_snr(ov, ys, xs, valid, model)
+    picked = ov[ys, xs].astype(np.float64)
+    sigma2 = (model.sigma(ov[ys, xs]).astype(np.float64) ** 2).mean(axis=-1)
+    expected = np.where(valid, np.linalg.norm(picked, axis=-1) / np.sqrt(sigma2), 0.0)
+    np.testing.assert_allclose(got, expected, rtol=1e-5)
 
 
 @settings(max_examples=25, deadline=None)
@@ -240,10 +254,16 @@ def test_pixel_groups_are_the_distinct_rows():
     rng = np.random.default_rng(5)
     rows = np.column_stack([rng.integers(0, 3, 5000) << 40, rng.integers(0, 8, 5000),
                             rng.integers(-2, 1, (5000, 3))])
-    keys, group = _group_rows(rows)
-    expected_keys, expected_group = np.unique(rows, axis=0, return_inverse=True)
-    assert np.array_equal(keys, expected_keys)
-    assert np.array_equal(group, expected_group.ravel())
+    # Light-mask words with the top bit set (negative as int64), and digits wide
+    # enough that their code must be compacted on the way.
+    wide = np.column_stack([rng.integers(-2 ** 63, -1, 5000, dtype=np.int64),
+                            rng.integers(0, 60000, (5000, 5))])
+    wide[2500:] = wide[:2500]  # repeated rows
+    for table in (rows, wide, rows[:0]):
+        keys, group = _group_rows(table)
+        expected_keys, expected_group = np.unique(table, axis=0, return_inverse=True)
+        assert np.array_equal(keys, expected_keys)
+        assert np.array_equal(group, expected_group.ravel())
 
 
 @pytest.mark.parametrize("model", [
