@@ -21,9 +21,8 @@ def _invalid(v):
 
 @njit(cache=True, parallel=True)
 def observation_vectors(stack, mixing, clip_level, min_norm,
-                        ov, signatures, norms, band_invalid, band_clipped, band_dark,
-                        clipped_lights):
-    """Fill the observation vectors of every pixel, their norms and unit vectors.
+                        ov, norms, band_invalid, band_clipped, band_dark, clipped_lights):
+    """Fill the observation vectors of every pixel, their norms and their flags.
 
     Parameters
     ----------
@@ -40,8 +39,6 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
     Outputs (written in place)
     --------------------------
     ov : (H, W, B, m) float32
-    signatures : (H, W, B * m) float32
-        Band-major unit vectors, 0 where the band is unusable.
     norms : (H, W, B) float32
     band_invalid, band_clipped, band_dark : (H, W, B) bool
     clipped_lights : (H, W, words) uint64
@@ -80,9 +77,24 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
                 band_invalid[y, x, b] = invalid
                 band_clipped[y, x, b] = clipped
                 band_dark[y, x, b] = dark
-                usable = not invalid and not clipped and not dark
+
+
+@njit(cache=True, parallel=True)
+def unit_signatures(ov, band_valid, signatures):
+    """Band-major unit vectors of OVs: ov (H, W, B, m) float32, band_valid (H, W, B);
+    signatures (H, W, B * m) float32 written in place: ov / |ov| (float64 norm and
+    division), 0 where the band is not valid."""
+    h, w, n_bands, m = ov.shape
+    for y in prange(h):
+        for x in range(w):
+            for b in range(n_bands):
+                total = 0.0
                 for i in range(m):
-                    signatures[y, x, b * m + i] = (ov[y, x, b, i] / norm) if usable else 0.0
+                    total += np.float64(ov[y, x, b, i]) * np.float64(ov[y, x, b, i])
+                norm = np.sqrt(total)
+                for i in range(m):
+                    signatures[y, x, b * m + i] = (ov[y, x, b, i] / norm) \
+                        if band_valid[y, x, b] else 0.0
 
 
 @njit(cache=True, parallel=True, error_model="numpy")

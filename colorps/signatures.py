@@ -20,6 +20,7 @@ mode       signature of a pixel
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -40,7 +41,8 @@ class SignatureSet:
     ----------
     signatures : (H, W, B * m) ndarray of float32
         Band-major concatenation of per-band unit signatures; the block of a
-        band that is not valid is zero.
+        band that is not valid is zero. Computed from ``ov`` when first read
+        (a reconstruction matches from the OVs and never needs the scene's).
     norms : (H, W, B) ndarray of float32
         Euclidean norm of each band's OV (needed for albedo, eq. 6).
     valid : (H, W) ndarray of bool
@@ -64,7 +66,6 @@ class SignatureSet:
         Number of images m.
     """
 
-    signatures: np.ndarray
     norms: np.ndarray
     valid: np.ndarray
     band_valid: np.ndarray
@@ -76,6 +77,12 @@ class SignatureSet:
     mode: str
     bands: int
     images: int
+
+    @cached_property
+    def signatures(self) -> np.ndarray:
+        out = np.empty(self.ov.shape[:2] + (self.bands * self.images,), dtype=np.float32)
+        _pixel_kernels.unit_signatures(self.ov, self.band_valid, out)
+        return out
 
 
 def luminance(stack, colourspace: str = "sRGB") -> np.ndarray:
@@ -191,18 +198,16 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
         mixing = _mono_mixing(c, band, colourspace)
     b = mixing.shape[0]
     ov = np.empty((h, w, b, m), dtype=np.float32)
-    sig = np.empty((h, w, b * m), dtype=np.float32)
     norms = np.empty((h, w, b), dtype=np.float32)
     bad_any, clipped_any, dark = (np.empty((h, w, b), dtype=bool) for _ in range(3))
     lights = light_masks.empty((h, w), m)
     _pixel_kernels.observation_vectors(
         np.ascontiguousarray(data, dtype=np.float32), mixing,
         np.inf if clip_level is None else float(clip_level), float(min_norm),
-        ov, sig, norms, bad_any, clipped_any, dark, lights)
+        ov, norms, bad_any, clipped_any, dark, lights)
     band_valid = ~bad_any & ~clipped_any & ~dark
     valid = band_valid.all(axis=-1)
     return SignatureSet(
-        signatures=sig,
         norms=norms,
         valid=valid,
         band_valid=band_valid,
