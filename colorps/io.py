@@ -63,6 +63,22 @@ def _open_input(path: Path):
     return inp
 
 
+def _read_rows(inp, spec, start: int, stop: int):
+    """Rows ``start`` to ``stop - 1`` of an open image: scanlines, or for a tiled
+    file the row of tiles holding them (tile reads must be tile-aligned)."""
+    if spec.tile_width <= 0:
+        return inp.read_scanlines(0, 0, spec.y + start, spec.y + stop, 0, 0, spec.nchannels,
+                                  "float")
+    first = start // spec.tile_height * spec.tile_height
+    last = min(-(-stop // spec.tile_height) * spec.tile_height, spec.height)
+    block = inp.read_tiles(0, 0, spec.x, spec.x + spec.width, spec.y + first, spec.y + last,
+                           spec.z, spec.z + max(1, spec.depth), 0, spec.nchannels, "float")
+    if block is None:
+        return None
+    block = np.asarray(block).reshape(last - first, spec.width, spec.nchannels)
+    return block[start - first:stop - first]
+
+
 def file_mode(directory: bool = False) -> int:
     """Permission bits a new file (or folder) gets under the current umask."""
     mask = os.umask(0)
@@ -313,8 +329,7 @@ def read_image(path, encoding: Encoding = "auto", *,
             start, stop = rows
             if not 0 <= start < stop <= spec.height:
                 raise InputError(f"{path}: rows {start}..{stop} outside its {spec.height}")
-            pixels = inp.read_scanlines(0, 0, spec.y + start, spec.y + stop, 0, 0,
-                                        spec.nchannels, "float")
+            pixels = _read_rows(inp, spec, start, stop)
             height = stop - start
         problem = inp.geterror().strip()
     finally:

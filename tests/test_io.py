@@ -158,3 +158,21 @@ def test_srgb_encode_in_chunks_is_the_same(monkeypatch):
     monkeypatch.setattr(io, "SRGB_CHUNK", 7)  # chunks that split pixels' triples
     np.testing.assert_array_equal(io.srgb_encode(values), whole)
     assert whole[0, 0, 0] == 0.0 and whole.max() <= 1.0 and whole.min() >= 0.0
+
+
+def test_rows_of_tiled_exr_files(tmp_path):
+    """Tiled EXRs (as renderers and compositors write them) read a band of rows
+    too: the row of tiles holding it, cut to the rows asked for."""
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(2)
+    image = rng.uniform(0, 1, (70, 50, 3)).astype(np.float32)
+    path = tmp_path / "tiled.exr"
+    spec = oiio.ImageSpec(50, 70, 3, "float")
+    spec.tile_width = spec.tile_height = 16  # 70 rows: a partial last row of tiles
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(image)
+    out.close()
+    assert np.array_equal(read_image(path)[0], image)
+    for start, stop in [(0, 1), (15, 17), (16, 32), (20, 70), (69, 70)]:
+        assert np.array_equal(read_image(path, rows=(start, stop))[0], image[start:stop])
