@@ -20,6 +20,8 @@ angular uncertainty.
 import numpy as np
 from numba import njit, prange
 
+from ._pixel_kernels import _variance
+
 # ---------------------------------------------------------------- tuning
 #: Half sides of the gauge neighbourhoods the quadratic model is fitted to: 5 x 5
 #: where the gauge has it, else 3 x 3 (near the rim). A noisy gauge makes a
@@ -109,39 +111,25 @@ def _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights, u, v):
     return u, v, h00, h01, h11
 
 
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def _variance(v, noise, row, table):
-    """Expected variance of a measurement v (see :class:`colorps.noise.NoiseModel`).
-
-    noise[row] = (read^2, gain, kind): kind 0 float, 1 half float, 2 integer
-    codes with the quantisation sigma tabulated over 0..1 in table[row].
-    """
-    v = max(v, 0.0)
-    variance = noise[row, 0] + noise[row, 1] * v
-    kind = noise[row, 2]
-    if kind == 1.0:
-        ulp = 2.0 ** (np.floor(np.log2(max(v, 2.0 ** -14))) - 10.0)
-        variance += ulp * ulp / 12.0
-    elif kind == 2.0:
-        n = table.shape[1]
-        t = min(v, 1.0) * (n - 1)
-        j = min(int(t), n - 2)
-        q = table[row, j] + (t - j) * (table[row, j + 1] - table[row, j])
-        variance += q * q
-    return variance
-
-
 @njit(cache=True, inline="always")
 def _has(mask, i):
     """Image i is in the light mask (words of uint64, colorps.light_masks)."""
     return (mask[i >> 6] >> np.uint64(i & 63)) & np.uint64(1) != 0
 
 
+@njit(cache=True, inline="always")
+def _model_variance(v, noise, levels, table, row):
+    """sigma(v)^2 under noise model ``row``: noise[row] = (read^2, gain, kind)."""
+    return _variance(v, noise[row, 0], noise[row, 1], int(noise[row, 2]), levels, table[row])
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, table, obs, weights):
+def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, levels, table, obs,
+             weights):
     """Fill obs (B, M) with the pixel's measurements and weights (B, M) with
     1 / (sigma_S^2 + (|S_k| / |G_k|)^2 sigma_G^2) for the bands and lights its
-    match used (0 for the others)."""
+    match used (0 for the others); sigma^2 as _pixel_kernels._variance gives it,
+    of the scene's (row 0 of noise and table) and the gauge's (row 1) model."""
     n_bands, n_lights = obs.shape
     for k in range(n_bands):
         used = (bands >> k) & 1
@@ -157,8 +145,8 @@ def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, table, obs
         for i in range(n_lights):
             weights[k, i] = 0.0
             if used and g2 > 0.0 and not _has(dropped, i):
-                variance = _variance(obs[k, i], noise, 0, table) + \
-                    ratio2 * _variance(gauge_ov[y, x, k, i], noise, 1, table)
+                variance = _model_variance(obs[k, i], noise, levels, table, 0) + \
+                    ratio2 * _model_variance(gauge_ov[y, x, k, i], noise, levels, table, 1)
                 weights[k, i] = 1.0 / max(variance, 1e-30)
 
 
@@ -215,7 +203,7 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, ou
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
 def refine(coef, ncoef, window, scene_ov, gauge_ov, py, px, qy, qx, bands, dropped, noise,
-           table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok):
+           levels, table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok):
     """Refine every pixel p (``prange`` over chunks); see the module docstring.
 
     coef (Hg, Wg, B * M, 6) and ncoef (Hg, Wg, 3, 6) hold the quadratic model
@@ -224,8 +212,9 @@ def refine(coef, ncoef, window, scene_ov, gauge_ov, py, px, qy, qx, bands, dropp
     gauge pixel has no usable neighbourhood. scene_ov (H, W, B, M) and
     gauge_ov (Hg, Wg, B, M) are the observation vectors; pixel p is (py, px),
     matched to gauge pixel (qy, qx), with bands (bit k: band used) and dropped
-    (light masks, (P, words) uint64). noise (2, 3) and table (2, Q) describe the scene's
-    (row 0) and gauge's (row 1) noise (:func:`_variance`). Outputs: the gauge
+    (light masks, (P, words) uint64). noise (2, 3) (read^2, gain, pixel kind), levels
+    (Q,) and table (2, Q) describe the scene's (row 0) and gauge's (row 1) noise
+    (:func:`colorps._pixel_kernels._variance`). Outputs: the gauge
     pixel the fit ended at (out_y, out_x) and the offset (u, v) from it, the
     unit normal, the normal's angular variance (radians^2), and whether it was
     refined.
@@ -238,6 +227,6 @@ def refine(coef, ncoef, window, scene_ov, gauge_ov, py, px, qy, qx, bands, dropp
         weights = np.empty((n_bands, n_lights))
         for p in range(chunk * PIXEL_CHUNK, min((chunk + 1) * PIXEL_CHUNK, n)):
             _weights(scene_ov, gauge_ov, py[p], px[p], qy[p], qx[p], bands[p], dropped[p],
-                     noise, table, obs, weights)
+                     noise, levels, table, obs, weights)
             _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, out_u,
                           out_v, out_normal, out_cov, out_ok)

@@ -108,19 +108,23 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
             np.ascontiguousarray(coef[..., values.shape[2]:, :]), window)
 
 
-def noise_arrays(scene: NoiseModel, gauge: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
-    """The kernel's description of two noise models: (2, 3) (read^2, gain, kind) and
-    (2, Q) quantisation sigma over 0..1 (integer files)."""
-    from .noise import QUANTISATION_SAMPLES, _quantisation_table
+def noise_arrays(scene: NoiseModel, gauge: NoiseModel
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kernel's description of two noise models (NoiseModel.kernel_args of each,
+    stacked): (2, 3) (read^2, gain, pixel kind), the (Q,) levels 0..1 and the
+    (2, Q) quantisation sigma at them (integer files; 0 for the others)."""
+    from .noise import QUANTISATION_SAMPLES
 
-    kinds = {"float": 0.0, "half": 1.0, "int": 2.0}
     noise = np.zeros((2, 3))
+    levels = np.linspace(0.0, 1.0, QUANTISATION_SAMPLES)
     table = np.zeros((2, QUANTISATION_SAMPLES))
     for row, model in enumerate((scene, gauge)):
-        noise[row] = (model.read ** 2, model.gain, kinds[model.pixel_type])
-        if model.pixel_type == "int":  # the table NoiseModel.sigma interpolates
-            table[row] = _quantisation_table(model.top_code, model.encoding)[1]
-    return noise, table
+        read2, gain, kind, model_levels, model_table = model.kernel_args()
+        noise[row] = (read2, gain, kind)
+        if model.pixel_type == "int":
+            assert np.array_equal(model_levels, levels)
+            table[row] = model_table
+    return noise, levels, table
 
 
 def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np.ndarray,
@@ -172,7 +176,7 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     needed = binary_dilation(matched, np.ones((reach, reach), bool))
     coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
                                            usable, needed)
-    noise, table = noise_arrays(scene_noise, gauge_noise)
+    noise, levels, table = noise_arrays(scene_noise, gauge_noise)
     out_y = qy.copy()
     out_x = qx.copy()
     out_u = np.zeros(n)
@@ -189,7 +193,7 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
             np.asarray(ys, dtype=np.int64), np.asarray(xs, dtype=np.int64), qy, qx,
             np.asarray(bands, dtype=np.uint8),
             np.ascontiguousarray(dropped, dtype=np.uint64).reshape(n, -1), noise,
-            table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok)
+            levels, table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok)
     finally:
         numba.set_num_threads(previous)
     table_normals = gauge_normals.reshape(-1, 3)[rows]

@@ -89,13 +89,18 @@ def test_refinement_works_for_any_gauge_given_as_normals():
     dict(read=0.0, gain=2e-5, pixel_type="int", top_code=255, encoding="srgb"),
     dict(read=0.0005, gain=0.0, pixel_type="int", top_code=65535, encoding="linear")])
 def test_kernel_noise_matches_the_noise_model(model):
-    """The refinement kernel's copy of sigma(v)^2 agrees with NoiseModel.sigma."""
+    """The refinement kernel's sigma(v)^2, of either model row, agrees with
+    NoiseModel.sigma."""
     from colorps import _refine_kernels
     from colorps.noise import NoiseModel
     from colorps.refine import noise_arrays
 
     noise = NoiseModel(**model)
-    arrays, table = noise_arrays(noise, noise)
-    values = np.linspace(0.0, 1.0, 257)
-    kernel = np.array([_refine_kernels._variance(v, arrays, 0, table) for v in values])
-    np.testing.assert_allclose(np.sqrt(kernel), noise.sigma(values), rtol=2e-3, atol=1e-9)
+    other = NoiseModel(read=0.3, gain=0.1, pixel_type="float")
+    values = np.concatenate([np.linspace(0.0, 1.0, 257), np.exp2(np.arange(-20.0, 4.0))])
+    for row, models in ((0, (noise, other)), (1, (other, noise))):
+        arrays, levels, table = noise_arrays(*models)
+        kernel = np.array([_refine_kernels._model_variance(v, arrays, levels, table, row)
+                           for v in values])
+        np.testing.assert_allclose(np.sqrt(kernel), noise.sigma(values), rtol=1e-6,
+                                   atol=1e-12)
