@@ -240,12 +240,26 @@ def _integrate_poisson(gx, grow, mask, weights, tol, anchor=None) -> np.ndarray:
     Returns the heights of the mask pixels, in row-major order.
     """
     import pyamg
+
+    lap, rhs = _normal_equations(gx, grow, mask, weights, anchor)
+    if lap is None:
+        return np.zeros(rhs.size)
+    # (Built in a function of its own: its index and edge arrays are freed
+    # before the AMG setup, the peak of the integration's memory.)
+    solver = pyamg.ruge_stuben_solver(lap, max_coarse=500)  # classical AMG: fast setup
+    return solver.solve(rhs, tol=tol, accel="cg", maxiter=400)
+
+
+def _normal_equations(gx, grow, mask, weights, anchor):
+    """L = A^T W A (a weighted graph Laplacian, CSR with int32 indices) and
+    rhs = A^T W g over the mask pixels (row-major); L is None without any pair."""
     import scipy.sparse as sp
 
     inside = mask.ravel()
     n = int(inside.sum())
-    compact = np.full(mask.size, -1, dtype=np.int64)
-    compact[inside] = np.arange(n)
+    index = np.int32 if n < 2 ** 31 else np.int64
+    compact = np.full(mask.size, -1, dtype=index)
+    compact[inside] = np.arange(n, dtype=index)
     (ha, hb), (va, vb) = _edges(mask)
     fx, frow = gx.ravel(), grow.ravel()
     target = np.concatenate([0.5 * (fx[ha] + fx[hb]), 0.5 * (frow[va] + frow[vb])])
@@ -256,11 +270,11 @@ def _integrate_poisson(gx, grow, mask, weights, tol, anchor=None) -> np.ndarray:
         wt = np.minimum(flat[np.concatenate([ha, va])], flat[np.concatenate([hb, vb])])
     a = compact[np.concatenate([ha, va])]
     b = compact[np.concatenate([hb, vb])]
+    del ha, hb, va, vb, compact
     if a.size == 0:
-        return np.zeros(n)
-    # L = A^T W A (a weighted graph Laplacian) and rhs = A^T W g. A tiny diagonal
-    # shift makes each part's constant unique (removed afterwards) and keeps
-    # pixels without any weighted neighbour at 0.
+        return None, np.zeros(n)
+    # A tiny diagonal shift makes each part's constant unique (removed
+    # afterwards) and keeps pixels without any weighted neighbour at 0.
     degree = np.bincount(a, wt, n) + np.bincount(b, wt, n)
     rhs = np.bincount(b, wt * target, n) - np.bincount(a, wt * target, n)
     diag = degree + 1e-9 * max(wt.mean(), 1e-12)
@@ -269,11 +283,11 @@ def _integrate_poisson(gx, grow, mask, weights, tol, anchor=None) -> np.ndarray:
         pull = np.where(np.isfinite(held), ANCHOR_WEIGHT * max(wt.mean(), 1e-12), 0.0)
         diag = diag + pull
         rhs = rhs + pull * np.nan_to_num(held)
+    diagonal = np.arange(n, dtype=index)
     lap = sp.coo_matrix((np.concatenate([-wt, -wt, diag]),
-                         (np.concatenate([a, b, np.arange(n)]),
-                          np.concatenate([b, a, np.arange(n)]))), shape=(n, n)).tocsr()
-    solver = pyamg.ruge_stuben_solver(lap, max_coarse=500)  # classical AMG: fast setup
-    return solver.solve(rhs, tol=tol, accel="cg", maxiter=400)
+                         (np.concatenate([a, b, diagonal]), np.concatenate([b, a, diagonal]))),
+                        shape=(n, n)).tocsr()
+    return lap, rhs
 
 
 def _integrate_tiled(normals, mask, weights, tol, tile, min_nz) -> np.ndarray:
