@@ -390,19 +390,20 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
 
     paths = [Path(p) for p in paths]
     check_stack_files(paths, name=name, max_bytes=max_bytes)
-    first, names = None, None
-    images = []
-    for path in tqdm(paths, desc=f"reading {name}", disable=not progress, leave=False):
+    first, names, stack = None, None, None
+    for k, path in enumerate(tqdm(paths, desc=f"reading {name}", disable=not progress,
+                                  leave=False)):
         image, channel_names = read_image(path, encoding, rows=rows)
-        if first is None:
+        if stack is None:  # filled image by image: never the images and the stack at once
             first, names = path, channel_names
-        elif image.shape != images[0].shape:
+            stack = np.empty((len(paths),) + image.shape, dtype=np.float32)
+        elif image.shape != stack.shape[1:]:
             raise ImageReadError(
                 f"{path}: size {image.shape[1]}x{image.shape[0]} with {image.shape[2]} "
-                f"channel(s) differs from {first} ({images[0].shape[1]}x"
-                f"{images[0].shape[0]} with {images[0].shape[2]})")
-        images.append(image)
-    return np.stack(images), names
+                f"channel(s) differs from {first} ({stack.shape[2]}x"
+                f"{stack.shape[1]} with {stack.shape[3]})")
+        stack[k] = image
+    return stack, names
 
 
 def write_image(path, image, *, channel_names: Sequence[str] | None = None,
