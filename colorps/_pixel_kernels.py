@@ -179,6 +179,28 @@ def _variance(value, read2, gain, pixel_kind, levels, table):
     return variance
 
 
+@njit(cache=True, inline="always")
+def _band_norm2(scene_ov, y, x, b, lights):
+    """|OV|^2 of band b of pixel (y, x) over ``lights`` (float64)."""
+    total = 0.0
+    for j in range(lights.size):
+        v = np.float64(scene_ov[y, x, b, lights[j]])
+        total += v * v
+    return total
+
+
+@njit(cache=True, inline="always")
+def _divisor(norm2):
+    """|OV| to divide by: 1 for a zero OV, which then stays zero."""
+    return np.sqrt(norm2) if norm2 > 0.0 else 1.0
+
+
+@njit(cache=True, inline="always")
+def _unit(scene_ov, y, x, b, light, norm):
+    """One component of a unit signature: float64 division, rounded to float32."""
+    return np.float32(np.float64(scene_ov[y, x, b, light]) / norm)
+
+
 @njit(cache=True, parallel=True)
 def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
     """The queries of a group of pixels: weighted unit signatures over some lights.
@@ -204,14 +226,10 @@ def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
         y, x = ys[p], xs[p]
         for k in range(bands.size):
             b = bands[k]
-            total = 0.0
+            norm = _divisor(_band_norm2(scene_ov, y, x, b, lights))
             for j in range(n_lights):
-                v = np.float64(scene_ov[y, x, b, lights[j]])
-                total += v * v
-            norm = np.sqrt(total) if total > 0.0 else 1.0
-            for j in range(n_lights):
-                unit = np.float32(np.float64(scene_ov[y, x, b, lights[j]]) / norm)
-                queries[p, k * n_lights + j] = unit * weights[k]
+                queries[p, k * n_lights + j] = \
+                    _unit(scene_ov, y, x, b, lights[j], norm) * weights[k]
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -249,17 +267,16 @@ def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm
         d_sum = 0.0
         for k in range(n_bands):
             b = bands[k]
-            total = 0.0
             variance = 0.0
             for j in range(n_lights):
-                v = scene_ov[y, x, b, lights[j]]
-                total += np.float64(v) * np.float64(v)
-                variance += _variance(v, read2, gain, pixel_kind, levels, table)
+                variance += _variance(scene_ov[y, x, b, lights[j]], read2, gain, pixel_kind,
+                                      levels, table)
             variance = np.float64(np.float32(variance / n_lights))
-            norm = np.sqrt(total) if total > 0.0 else 1.0
+            total = _band_norm2(scene_ov, y, x, b, lights)
+            norm = _divisor(total)
             d = 0.0
             for j in range(n_lights):
-                unit = np.float32(np.float64(scene_ov[y, x, b, lights[j]]) / norm)
+                unit = _unit(scene_ov, y, x, b, lights[j], norm)
                 diff = np.float64(unit) - np.float64(gauge_sig[q, b, j])
                 d += diff * diff
             expected = (n_lights - 1) * (variance / total + gauge_var[q, b] / gauge_norm2[q, b]) \
