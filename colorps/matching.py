@@ -267,13 +267,15 @@ class Capture:
             if self._gauge_variance is None:  # per measurement, computed once
                 model = self.gauge_model or self.model
                 self._gauge_variance = model.sigma(self.gauge_ov) ** 2
-            ov = self.gauge_ov[..., list(lights)]
+            # np.take keeps the arrays C-contiguous (indexing the last axis with a
+            # list does not), so the kernels read them without copies.
+            ov = np.take(self.gauge_ov, lights, axis=-1)
             sig, norms = unit_rows(ov)
             usable = self.gauge_valid & (norms > self.min_norm)
-            sig = np.where(usable[..., None], sig, 0.0).astype(np.float32)
+            sig = np.where(usable[..., None], sig, np.float32(0.0))
             self._light_sets[lights] = _LightSet(
                 signatures=sig, norm2=norms ** 2,
-                variance=self._gauge_variance[..., list(lights)].mean(axis=-1),
+                variance=np.take(self._gauge_variance, lights, axis=-1).mean(axis=-1),
                 resolution=table_resolution(sig, usable.all(axis=-1)), usable=usable)
         return self._light_sets[lights]
 
