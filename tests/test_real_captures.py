@@ -79,7 +79,7 @@ def test_band_snr_is_norm_over_model_sigma(pixel_type):
     np.testing.assert_allclose(got, expected, rtol=1e-5)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(m=st.sampled_from([3, 5, 8]), seed=st.integers(0, 2 ** 31),
        levels=st.tuples(st.integers(-2, 0), st.integers(-2, 0), st.just(0)),
        count=st.sampled_from([20, 400]))
