@@ -18,6 +18,7 @@ ratio |S_k| / sigma_k relative to the pixel's best band; a band more than
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,11 +38,14 @@ __all__ = ["Capture", "GaugeTables", "GroupResult", "band_snr", "weight_levels",
 DROP_LEVEL = -3
 #: Groups of fewer pixels are matched by brute force instead of a grid.
 BRUTE_FORCE_PIXELS = 128
-#: Brute force works on blocks of about this many table-times-query values.
+#: Brute force works on blocks of about this many distances (queries x table rows).
 BRUTE_FORCE_BLOCK = 1 << 22
 #: GaugeTables keeps grids up to this many MiB (a 30k-entry colour grid of 8
 #: images takes about 16): the ones first built, which are the largest groups'.
 TABLE_CACHE_MIB = 192
+#: A capture keeps the gauge over the light subsets it matched last up to this many
+#: MiB (a 201 x 201 gauge of 96 RGB images takes 46 MiB a subset).
+LIGHT_SET_CACHE_MIB = 256
 
 
 def weight_levels(snr: np.ndarray) -> np.ndarray:
@@ -153,9 +157,11 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
     grid = None if tables is None else tables.get(key)
     if grid is None and len(queries) < BRUTE_FORCE_PIXELS:
         t = table.astype(np.float64)
-        t2 = (t * t).sum(axis=1)
+        t2 = np.einsum("ij,ij->i", t, t)
         rows = np.empty(len(queries), dtype=np.int64)
-        step = max(1, BRUTE_FORCE_BLOCK // max(1, table.size))
+        # Blocks of queries x table rows distances (not x dimensions too: with 96
+        # lights that left one query per block, a matrix-vector product each).
+        step = max(1, BRUTE_FORCE_BLOCK // max(1, len(table)))
         for a in range(0, len(queries), step):
             q = queries[a:a + step].astype(np.float64)
             d2 = t2[None, :] - 2.0 * q @ t.T
@@ -179,6 +185,11 @@ class _LightSet:
     variance: np.ndarray    # (Hg, Wg, B)
     resolution: np.ndarray  # (Hg, Wg, B) h^2
     usable: np.ndarray      # (Hg, Wg, B) bool
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.signatures, self.norm2, self.variance,
+                                      self.resolution, self.usable))
 
 
 @dataclass(frozen=True)
@@ -236,7 +247,7 @@ class Capture:
     scene_clipped: np.ndarray | None = None
     scene_invalid: np.ndarray | None = None
     tables: GaugeTables | None = None
-    _light_sets: dict = field(default_factory=dict)
+    _light_sets: OrderedDict = field(default_factory=OrderedDict)
     _gauge_variance: np.ndarray | None = None
 
     @property
@@ -262,8 +273,11 @@ class Capture:
         return digest.digest()
 
     def light_set(self, lights: tuple[int, ...]) -> _LightSet:
-        """The gauge restricted to ``lights`` (computed once per subset)."""
-        if lights not in self._light_sets:
+        """The gauge restricted to ``lights``, kept while the light sets used last
+        fit in LIGHT_SET_CACHE_MIB (the set of every light always stays)."""
+        if lights in self._light_sets:
+            self._light_sets.move_to_end(lights)
+        else:
             if self._gauge_variance is None:  # per measurement, computed once
                 model = self.gauge_model or self.model
                 self._gauge_variance = model.sigma(self.gauge_ov) ** 2
@@ -277,7 +291,18 @@ class Capture:
                 signatures=sig, norm2=norms ** 2,
                 variance=np.take(self._gauge_variance, lights, axis=-1).mean(axis=-1),
                 resolution=table_resolution(sig, usable.all(axis=-1)), usable=usable)
+            self._forget_light_sets(keep=lights)
         return self._light_sets[lights]
+
+    def _forget_light_sets(self, keep: tuple[int, ...]) -> None:
+        """Drop the least recently used light sets beyond LIGHT_SET_CACHE_MIB."""
+        every = tuple(range(self.images))
+        total = sum(s.nbytes for s in self._light_sets.values())
+        for lights in list(self._light_sets):
+            if total <= LIGHT_SET_CACHE_MIB * 2 ** 20:
+                break
+            if lights not in (keep, every):
+                total -= self._light_sets.pop(lights).nbytes
 
     def match(self, ys: np.ndarray, xs: np.ndarray, bands: tuple[int, ...],
               levels: tuple[int, ...], lights: tuple[int, ...], *, grid_n=None,

@@ -275,3 +275,28 @@ def test_mean_variance_is_the_mean_of_sigma_squared(model):
     values[0, 0, :2] = [np.nan, np.inf]
     expected = (model.sigma(values).astype(np.float64) ** 2).mean(axis=-1)
     np.testing.assert_allclose(model.mean_variance(values), expected, rtol=1e-5)
+
+
+def test_light_sets_are_kept_within_their_memory_bound(monkeypatch):
+    """A capture of many lights tries many light subsets: the gauge over each is
+    kept only while the ones used last fit in LIGHT_SET_CACHE_MIB, and one
+    recomputed after being dropped is the same."""
+    from colorps import matching
+
+    lights = synth.ring_lights(12, 45)
+    gauge_stack, gauge = gauge_for(lights)
+    sig = compute_signatures(gauge_stack)
+    capture = Capture(sig.ov, sig.band_valid, sig.ov, sig.band_valid & gauge.mask[..., None],
+                      gauge.normals.reshape(-1, 3), NoiseModel(0.01, 0.0), 1e-4)
+    every = tuple(range(12))
+    one = capture.light_set(every).nbytes
+    monkeypatch.setattr(matching, "LIGHT_SET_CACHE_MIB", 3.5 * one / 2 ** 20)
+    first = capture.light_set(every[1:])
+    for k in range(2, 12):
+        capture.light_set(tuple(i for i in every if i != k))
+        assert sum(s.nbytes for s in capture._light_sets.values()) <= 3.5 * one
+    assert every in capture._light_sets and every[1:] not in capture._light_sets
+    again = capture.light_set(every[1:])
+    assert again is not first
+    assert np.array_equal(again.signatures, first.signatures)
+    assert np.array_equal(again.resolution, first.resolution)
