@@ -202,6 +202,69 @@ def _unit(scene_ov, y, x, b, light, norm):
 
 
 @njit(cache=True, parallel=True)
+def light_set(ov, lights, valid, min_norm, variance, signatures, norm2, mean_variance,
+              usable):
+    """The gauge over some lights, in one pass over its OVs.
+
+    Parameters
+    ----------
+    ov : (H, W, B, m) float32
+    lights : (L,) int64
+    valid : (H, W, B) bool
+        Usable bands of the gauge over all lights.
+    min_norm : float
+        Smallest usable OV norm.
+    variance : (H, W, B, m) float32
+        Each measurement's noise variance.
+
+    Outputs (written in place)
+    --------------------------
+    signatures : (H, W, B, L) float32
+        Unit signatures over ``lights`` (as group_queries makes them), 0 where
+        the band is not usable.
+    norm2 : (H, W, B) float64
+        |OV|^2 over ``lights``.
+    mean_variance : (H, W, B) float32
+        Mean measurement variance over ``lights``.
+    usable : (H, W, B) bool
+        ``valid`` and |OV| over ``lights`` above ``min_norm``.
+    """
+    h, w, n_bands, _ = ov.shape
+    n_lights = lights.size
+    for y in prange(h):
+        for x in range(w):
+            for b in range(n_bands):
+                total = _band_norm2(ov, y, x, b, lights)
+                ok = valid[y, x, b] and np.sqrt(total) > min_norm
+                usable[y, x, b] = ok
+                norm2[y, x, b] = total
+                spread = 0.0
+                for j in range(n_lights):
+                    spread += variance[y, x, b, lights[j]]
+                mean_variance[y, x, b] = spread / n_lights
+                divisor = _divisor(total)
+                for j in range(n_lights):
+                    signatures[y, x, b, j] = _unit(ov, y, x, b, lights[j], divisor) if ok \
+                        else np.float32(0.0)
+
+
+@njit(cache=True, parallel=True)
+def group_table(signatures, pixels, bands, weights, table):
+    """The table of a group: weighted gauge signatures of some bands at some pixels.
+
+    signatures (Hg * Wg, B, L) float32 (a light set's), pixels (K,) int64 flat
+    gauge pixels, bands (k,) int64, weights (k,) float32; table (K, k * L)
+    float32 written in place, band-major.
+    """
+    n_lights = signatures.shape[2]
+    for e in prange(pixels.size):
+        q = pixels[e]
+        for i in range(bands.size):
+            for j in range(n_lights):
+                table[e, i * n_lights + j] = signatures[q, bands[i], j] * weights[i]
+
+
+@njit(cache=True, parallel=True)
 def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
     """The queries of a group of pixels: weighted unit signatures over some lights.
 

@@ -27,7 +27,7 @@ from . import _pixel_kernels
 from .errors import InputError
 from .grid import BucketGrid
 from .noise import NoiseModel
-from .residuals import match_residual, table_resolution, unit_rows
+from .residuals import match_residual, table_resolution
 
 __all__ = ["Capture", "GaugeTables", "GroupResult", "band_snr", "weight_levels", "nearest"]
 
@@ -280,16 +280,19 @@ class Capture:
         else:
             if self._gauge_variance is None:  # per measurement, computed once
                 model = self.gauge_model or self.model
-                self._gauge_variance = model.sigma(self.gauge_ov) ** 2
-            # np.take keeps the arrays C-contiguous (indexing the last axis with a
-            # list does not), so the kernels read them without copies.
-            ov = np.take(self.gauge_ov, lights, axis=-1)
-            sig, norms = unit_rows(ov)
-            usable = self.gauge_valid & (norms > self.min_norm)
-            sig = np.where(usable[..., None], sig, np.float32(0.0))
+                self._gauge_variance = np.ascontiguousarray(model.sigma(self.gauge_ov) ** 2)
+            hg, wg, n_bands, _ = self.gauge_ov.shape
+            sig = np.empty((hg, wg, n_bands, len(lights)), dtype=np.float32)
+            norm2 = np.empty((hg, wg, n_bands))
+            variance = np.empty((hg, wg, n_bands), dtype=np.float32)
+            usable = np.empty((hg, wg, n_bands), dtype=bool)
+            _pixel_kernels.light_set(np.ascontiguousarray(self.gauge_ov),
+                                     np.array(lights, dtype=np.int64),
+                                     np.ascontiguousarray(self.gauge_valid),
+                                     float(self.min_norm), self._gauge_variance, sig, norm2,
+                                     variance, usable)
             self._light_sets[lights] = _LightSet(
-                signatures=sig, norm2=norms ** 2,
-                variance=np.take(self._gauge_variance, lights, axis=-1).mean(axis=-1),
+                signatures=sig, norm2=norm2, variance=variance,
                 resolution=table_resolution(sig, usable.all(axis=-1)), usable=usable)
             self._forget_light_sets(keep=lights)
         return self._light_sets[lights]
@@ -318,11 +321,12 @@ class Capture:
             nothing = np.full(n_rows, np.nan, np.float32)
             return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
                                0.0, time.perf_counter() - t0, 0.0)
-        table = (gauge.signatures[table_px][:, band_list] * scale).reshape(-1, len(bands) *
-                                                                           len(lights))
-        table = np.ascontiguousarray(table)
-        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
         band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
+        table_rows = np.flatnonzero(table_px)
+        table = np.empty((len(table_rows), len(bands) * len(lights)), dtype=np.float32)
+        _pixel_kernels.group_table(gauge.signatures.reshape(-1, self.bands, len(lights)),
+                                   table_rows, band_index, scale[:, 0], table)
+        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
         queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
         _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
                                      scale[:, 0], queries)
@@ -332,7 +336,7 @@ class Capture:
         found, b_sum, d_sum, n = nearest(table, queries, grid_n=grid_n, threads=threads,
                                          sample=sample, tables=self.tables,
                                          key=(bands, levels, lights, grid_n))
-        rows = np.flatnonzero(table_px)[found]
+        rows = table_rows[found]
         t_lookup = time.perf_counter() - t0
         residual, distance = match_residual(
             self.scene_ov, ys, xs, band_index, light_index, rows,

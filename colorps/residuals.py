@@ -34,19 +34,11 @@ import numpy as np
 
 from .noise import NoiseModel
 
-__all__ = ["table_resolution", "match_residual", "light_residuals",
-           "unit_rows", "MODEL_FLOOR"]
+__all__ = ["table_resolution", "match_residual", "light_residuals", "MODEL_FLOOR"]
 
 #: Signature residual per band (unit vectors; 0.005 is about 0.3 degrees between
 #: two OVs) that any match is allowed on top of noise and table resolution.
 MODEL_FLOOR = 0.005
-
-
-def unit_rows(ov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Observation vectors (..., m) as unit vectors, and their norms (zero stays zero)."""
-    norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
-    safe = np.where(norms > 0, norms, 1.0)
-    return (ov / safe[..., None]).astype(np.float32), norms
 
 
 def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:
