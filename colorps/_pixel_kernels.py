@@ -162,7 +162,10 @@ def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albed
 
 @njit(cache=True, inline="always")
 def _variance(value, read2, gain, pixel_kind, levels, table):
-    """sigma(v)^2 = read^2 + gain v + q(v)^2 of one measurement (see mean_variance)."""
+    """sigma(v)^2 = read^2 + gain v + q(v)^2 of one measurement (see mean_variance).
+
+    Inlined by _refine_kernels too, whose numba cache does not see edits here.
+    """
     v = np.float64(value)
     if not (v > 0.0) or not np.isfinite(v):
         v = 0.0

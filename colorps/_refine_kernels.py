@@ -20,6 +20,8 @@ angular uncertainty.
 import numpy as np
 from numba import njit, prange
 
+# numba's cache watches only this file: after editing _pixel_kernels._variance,
+# touch this one too (or clear its __pycache__), or the refinement keeps the old one.
 from ._pixel_kernels import _variance
 
 # ---------------------------------------------------------------- tuning

@@ -164,9 +164,17 @@ class NoiseModel:
                     top_code=self.top_code, encoding=self.encoding, estimated=self.estimated)
 
 
+@lru_cache(maxsize=1)
+def _quantisation_levels() -> np.ndarray:
+    """The QUANTISATION_SAMPLES levels in 0..1 the quantisation term is tabulated at."""
+    levels = np.linspace(0.0, 1.0, QUANTISATION_SAMPLES)
+    levels.setflags(write=False)
+    return levels
+
+
 @lru_cache(maxsize=8)
 def _quantisation_table(top_code: int, encoding: str) -> tuple[np.ndarray, np.ndarray]:
-    levels = np.linspace(0.0, 1.0, QUANTISATION_SAMPLES)
+    levels = _quantisation_levels()
     return levels, quantisation_sigma(levels, pixel_type="int", top_code=top_code,
                                       encoding=encoding)
 

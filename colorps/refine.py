@@ -113,16 +113,15 @@ def noise_arrays(scene: NoiseModel, gauge: NoiseModel
     """The kernel's description of two noise models (NoiseModel.kernel_args of each,
     stacked): (2, 3) (read^2, gain, pixel kind), the (Q,) levels 0..1 and the
     (2, Q) quantisation sigma at them (integer files; 0 for the others)."""
-    from .noise import QUANTISATION_SAMPLES
+    from .noise import _quantisation_levels
 
+    levels = _quantisation_levels()
     noise = np.zeros((2, 3))
-    levels = np.linspace(0.0, 1.0, QUANTISATION_SAMPLES)
-    table = np.zeros((2, QUANTISATION_SAMPLES))
+    table = np.zeros((2, levels.size))
     for row, model in enumerate((scene, gauge)):
-        read2, gain, kind, model_levels, model_table = model.kernel_args()
+        read2, gain, kind, _, model_table = model.kernel_args()  # integer files: at levels
         noise[row] = (read2, gain, kind)
         if model.pixel_type == "int":
-            assert np.array_equal(model_levels, levels)
             table[row] = model_table
     return noise, levels, table
 
