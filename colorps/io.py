@@ -407,7 +407,8 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
 
 
 def write_image(path, image, *, channel_names: Sequence[str] | None = None,
-                dtype: Literal["float", "half", "uint8", "uint16"] = "float") -> Path:
+                dtype: Literal["float", "half", "uint8", "uint16"] = "float",
+                tile: int | None = None) -> Path:
     """Write an image atomically (temporary file in the same folder, then rename).
 
     Parameters
@@ -420,6 +421,9 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
     channel_names : sequence of str, optional
     dtype : {"float", "half", "uint8", "uint16"}, optional
         Pixel type in the file.
+    tile : int, optional
+        OpenEXR only: store the image in tile x tile pixel tiles (readers can
+        then decode a region without the rest of the file); default scanlines.
     """
     import OpenImageIO as oiio
 
@@ -430,9 +434,16 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
     if data.ndim == 2:
         data = data[..., np.newaxis]
     h, w, c = data.shape
+    if tile is not None and (path.suffix.lower() != ".exr" or isinstance(tile, bool)
+                             or not isinstance(tile, (int, np.integer)) or tile < 1):
+        raise InputError(f"{path}: tile: expected a tile side in pixels for an .exr file, "
+                         f"got {tile!r}")
     spec = oiio.ImageSpec(w, h, c, dtype)
     if channel_names is not None:
         spec.channelnames = tuple(channel_names)
+    if tile is not None:
+        spec.tile_width = spec.tile_height = int(tile)
+        spec.tile_depth = 1
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
     elif path.suffix.lower() == ".png":

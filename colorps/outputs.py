@@ -30,6 +30,10 @@ mesh.ply/.obj   triangle mesh of the height field with albedo vertex colours,
                 when asked for
 ==============  ==============================================================
 
+A tiled run (``--tile``, ``--memory-limit``, ``--scheduler``) writes its
+.exr maps in TILED_EXR_SIDE x TILED_EXR_SIDE pixel tiles, so that a viewer or
+a later tiled job reads a region of a large map without decoding the rest.
+
 Files are first written to a new folder beside the output folder, which then
 takes its place in one rename (see ``_write_folder``), so a failed or
 interrupted run leaves no half-written result and no temporary files.
@@ -67,6 +71,8 @@ HEIGHT_FILES = ("height.exr", "relief.png", "overview.png")
 #: Written when asked for, by kind.
 MESH_FILES = {"ply": "mesh.ply", "obj": "mesh.obj"}
 _ALL_FILES = OUTPUT_FILES + HEIGHT_FILES + tuple(MESH_FILES.values())
+#: Tile side (pixels) of the .exr maps of a tiled run (OpenEXR's usual 64).
+TILED_EXR_SIDE = 64
 _CONVENTIONS = ("camera-space normals: x right, y up, z towards the camera; "
                 "pixel (x, y) = (column, row); linear values")
 
@@ -115,7 +121,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
                         scene_preview: np.ndarray | None = None,
                         report: dict | None = None, mesh: Sequence[str] = (),
                         overwrite: bool = False,
-                        finished: Future[Reconstruction] | None = None) -> list[Path]:
+                        finished: Future[Reconstruction] | None = None,
+                        exr_tile: int | None = None) -> list[Path]:
     """Write every output file of a reconstruction (see the module docstring).
 
     Parameters
@@ -139,6 +146,9 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         integrates in a thread meanwhile): the files that need no height are
         written first, the height files and report.json once it is done. An
         error it raises fails the whole write (nothing is left behind).
+    exr_tile : int, optional
+        Write the .exr maps in tiles of this side (pixels), as a tiled run does
+        (TILED_EXR_SIDE); default scanlines.
 
     Returns
     -------
@@ -147,7 +157,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
     """
     if mesh and result.height is None and finished is None:
         raise OutputError("a mesh needs the height map; integrate the normals first")
-    writers = _writers(result, channel_names, scene_preview, report, mesh, finished)
+    writers = _writers(result, channel_names, scene_preview, report, mesh, finished, exr_tile)
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     return _write_folder(out, writers)
 
@@ -268,7 +278,7 @@ def save_height(height: np.ndarray, out, *, mesh=None, overwrite: bool = False) 
 
 
 def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
-             finished=None) -> dict[str, Callable[[Path], object]]:
+             finished=None, exr_tile=None) -> dict[str, Callable[[Path], object]]:
     """``{file name: write(path)}`` of every file to write: the maps, then those
     that need the height (waiting for ``finished``), report.json last."""
 
@@ -279,26 +289,29 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
     if channel_names is None:
         channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
     solved = result.solved[..., None]
+
+    def exr(p, image, channels):
+        return write_image(p, image, channel_names=channels, tile=exr_tile)
+
     writers = {
-        "normal.exr": lambda p: write_image(p, result.normals, channel_names=["X", "Y", "Z"]),
+        "normal.exr": lambda p: exr(p, result.normals, ["X", "Y", "Z"]),
         "normal.png": lambda p: write_image(p, np.where(solved, (result.normals + 1) / 2, 0.0),
                                             dtype="uint8"),
-        "albedo.exr": lambda p: write_image(p, result.albedo,
-                                            channel_names=list(channel_names)),
+        "albedo.exr": lambda p: exr(p, result.albedo, list(channel_names)),
         "albedo.png": lambda p: write_image(
             p, srgb_encode(as_rgb(np.where(solved, result.albedo, 0.0))), dtype="uint8"),
-        "quality.exr": lambda p: write_image(p, result.quality, channel_names=["Q"]),
+        "quality.exr": lambda p: exr(p, result.quality, ["Q"]),
         "invalid.png": lambda p: write_image(p, reason_picture(result.reason), dtype="uint8"),
         "lights.png": lambda p: write_image(p, _dropped_picture(result.lights_dropped_count),
                                             dtype="uint8"),
         "lights.exr": lambda p: _write_light_channels(p, result.dropped_lights,
-                                                      result.stats.images),
-        "uncertainty.exr": lambda p: write_image(p, result.uncertainty, channel_names=["U"]),
+                                                      result.stats.images, exr_tile),
+        "uncertainty.exr": lambda p: exr(p, result.uncertainty, ["U"]),
     }
     if result.height is not None or finished is not None:
         preview = result.albedo if scene_preview is None else scene_preview
         title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
-        writers["height.exr"] = lambda p: write_image(p, final().height, channel_names=["Z"])
+        writers["height.exr"] = lambda p: exr(p, final().height, ["Z"])
         writers["relief.png"] = lambda p: write_image(p, shaded_relief(final().height),
                                                       dtype="uint8")
         writers["overview.png"] = lambda p: write_image(
@@ -318,7 +331,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
 LIGHTS_PER_CHANNEL = 16
 
 
-def _write_light_channels(path, dropped: np.ndarray, m: int):
+def _write_light_channels(path, dropped: np.ndarray, m: int, exr_tile=None):
     """lights.exr: 16 images' bits per float32 channel, cut straight from the
     masks' 64-bit words (no per-image array)."""
     per_word = 64 // LIGHTS_PER_CHANNEL
@@ -330,7 +343,7 @@ def _write_light_channels(path, dropped: np.ndarray, m: int):
             np.uint64(2 ** LIGHTS_PER_CHANNEL - 1)
     names = ["L"] if m <= LIGHTS_PER_CHANNEL else \
         [f"L{a}-{min(a + LIGHTS_PER_CHANNEL, m) - 1}" for a in starts]
-    return write_image(path, channels, channel_names=names)
+    return write_image(path, channels, channel_names=names, tile=exr_tile)
 
 
 def _dropped_picture(count: np.ndarray) -> np.ndarray:

@@ -84,7 +84,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     from .integrate import DEFAULT_TILE, integrate, weights_from_quality
     from .io import (check_decoded_size, check_stack_files, expand_paths, input_levels,
                      noise_base, read_image, read_mask, read_stack)
-    from .outputs import prepare_output_dir, save_reconstruction
+    from .outputs import TILED_EXR_SIDE, prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
     from .tiles import (DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, release_freed_memory,
                         rows_for_memory)
@@ -232,7 +232,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
             if options.height and result.height is None else None
         save_reconstruction(result, out, channel_names=names, scene_preview=preview,
                             report=report, mesh=options.mesh_kinds, overwrite=overwrite,
-                            finished=finished)
+                            finished=finished, exr_tile=TILED_EXR_SIDE if tiled else None)
     return result if finished is None else finished.result()
 
 

@@ -167,12 +167,19 @@ def test_rows_of_tiled_exr_files(tmp_path):
 
     rng = np.random.default_rng(2)
     image = rng.uniform(0, 1, (70, 50, 3)).astype(np.float32)
-    path = tmp_path / "tiled.exr"
-    spec = oiio.ImageSpec(50, 70, 3, "float")
-    spec.tile_width = spec.tile_height = 16  # 70 rows: a partial last row of tiles
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec) and out.write_image(image)
-    out.close()
+    path = write_image(tmp_path / "tiled.exr", image, tile=16)  # a partial last row
+    inp = oiio.ImageInput.open(str(path))
+    assert (inp.spec().tile_width, inp.spec().tile_height) == (16, 16)
+    inp.close()
     assert np.array_equal(read_image(path)[0], image)
     for start, stop in [(0, 1), (15, 17), (16, 32), (20, 70), (69, 70)]:
         assert np.array_equal(read_image(path, rows=(start, stop))[0], image[start:stop])
+
+
+def test_tiles_only_for_exr_files(tmp_path):
+    image = np.zeros((4, 4, 3), np.float32)
+    for path, tile in [(tmp_path / "a.png", 16), (tmp_path / "a.exr", 0),
+                       (tmp_path / "a.exr", True)]:
+        with pytest.raises(InputError, match="tile"):
+            write_image(path, image, tile=tile)
+        assert not path.exists()

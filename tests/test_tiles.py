@@ -156,9 +156,19 @@ def test_dask_local_cluster_gives_the_untiled_maps(messy, tmp_path):
     assert_same(whole, from_files)
 
 
+def exr_tile_side(path) -> int:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    side = inp.spec().tile_width
+    inp.close()
+    return side
+
+
 def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
     from colorps import Options
     from colorps.io import read_image
+    from colorps.outputs import TILED_EXR_SIDE
     from colorps.pipeline import reconstruct_files
 
     scene, gauge_stack, gauge, mask = messy
@@ -171,10 +181,13 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
                       progress=False)
     reconstruct_files(*args, tmp_path / "tiled", mask_path=tmp_path / "mask.png",
                       options=Options(tile=16), progress=False)
-    for name in ("normal", "albedo", "quality", "uncertainty", "height"):
+    for name in ("normal", "albedo", "quality", "uncertainty", "height", "lights"):
         whole = read_image(tmp_path / "whole" / f"{name}.exr")[0]
         tiled = read_image(tmp_path / "tiled" / f"{name}.exr")[0]
         assert np.array_equal(whole, tiled, equal_nan=True), name
+        # The tiled run's maps are tiled files, the plain run's scanline files.
+        assert exr_tile_side(tmp_path / "tiled" / f"{name}.exr") == TILED_EXR_SIDE, name
+        assert exr_tile_side(tmp_path / "whole" / f"{name}.exr") == 0, name
     with pytest.raises(InputError, match="--tile"):
         reconstruct_files(*args, tmp_path / "huge", options=Options(tile=16, max_input_gib=1e-6),
                           progress=False)
