@@ -27,7 +27,9 @@ class _FORMATTER(argparse.HelpFormatter):
 
     def _get_help_string(self, action):
         text = action.help or ""
-        if "default" not in text and action.default not in (None, False, argparse.SUPPRESS):
+        # (A --no-... flag's default True only means "not given": not shown.)
+        if "default" not in text and action.default not in (None, False, True,
+                                                            argparse.SUPPRESS):
             text += " (default: %(default)s)"
         return text
 

@@ -151,7 +151,7 @@ def test_console_script_version_and_help():
                               capture_output=True, text=True).stdout
     helptext = " ".join(helptext.split())
     assert "--sphere" in helptext and "(default: colour)" in helptext
-    assert "default: None" not in helptext
+    assert "default: None" not in helptext and "default: True" not in helptext
     bad = subprocess.run([sys.executable, "-m", "colorps.cli", "reconstruct"],
                          capture_output=True, text=True)
     assert bad.returncode == 2
