@@ -409,15 +409,23 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
 
     The cost is the mean Huber loss of the relative residuals, with the
     threshold taken from the Lambertian start (the same for every shininess).
+    Each round's passes over the measurements are compiled
+    (:mod:`colorps._brdf_kernels`); the small normal equations are solved here.
     """
     from scipy.optimize import nnls
 
-    c = obs.shape[2]
+    from . import _brdf_kernels as kernels
+
+    m, n_pixels, c = obs.shape
     k = diffuse_basis.shape[-1]
-    free = diffuse_basis[..., :-1]  # g(1) = 1 is fixed
+    obs, base_weight, diffuse_basis, lobe = (np.ascontiguousarray(a, dtype=np.float64) for a in
+                                             (obs, base_weight, diffuse_basis, lobe))
     falloff = np.ones(k)
     specular = np.zeros(c)
     robust = np.ones_like(obs)
+    albedo = np.empty((n_pixels, c))
+    normal = np.empty((k - 1 + c, k - 1 + c))
+    right = np.empty(k - 1 + c)
     # Prior rows: falloff towards 1 and smooth (second differences).
     prior = np.eye(k - 1, k - 1 + c)
     second = np.zeros((k - 3, k - 1 + c))
@@ -426,40 +434,26 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
     regulariser = PRIOR_WEIGHT * prior.T @ prior + SMOOTHNESS_WEIGHT * second.T @ second
     pull = PRIOR_WEIGHT * prior.T @ np.ones(k - 1)
     measured = np.count_nonzero(base_weight)
-    threshold = None
+    data = dict(obs=obs, weight=base_weight, basis=diffuse_basis, lobe=lobe)
+    kernels.fit_albedo(robust=robust, falloff=falloff, specular=specular, albedo=albedo,
+                       **data)
+    relative = np.empty_like(obs)
+    kernels.relative_residuals(falloff=falloff, specular=specular, albedo=albedo,
+                               out=relative, **data)
+    threshold = HUBER_K * 1.4826 * np.median(np.abs(relative[base_weight > 0])) + 1e-12
+    del relative
     for round_ in range(FIT_ROUNDS + 1):
-        model = (diffuse_basis @ falloff)[..., None] + lobe[..., None] * specular
-        weight = base_weight * robust
-        albedo = (weight * model * obs).sum(0) / np.maximum((weight * model ** 2).sum(0),
-                                                            1e-30)
-        relative = (obs - albedo[None] * model) * np.sqrt(base_weight)
-        if threshold is None:
-            threshold = HUBER_K * 1.4826 * np.median(np.abs(relative[base_weight > 0])) \
-                + 1e-12
-        size = np.abs(relative)
-        robust = np.where(size <= threshold, 1.0, threshold / np.maximum(size, 1e-30))
-        cost = float(np.where(size <= threshold, size ** 2,
-                              2 * threshold * size - threshold ** 2).sum() / measured)
+        if round_:
+            kernels.fit_albedo(robust=robust, falloff=falloff, specular=specular,
+                               albedo=albedo, **data)
+        # Huber factors and loss at this fit; the next fit's normal equations,
+        # linear in (falloff[:-1], specular) given the albedo.
+        loss, total = kernels.huber_normal_equations(
+            robust=robust, falloff=falloff, specular=specular, albedo=albedo,
+            threshold=threshold, normal=normal, right=right, **data)
+        cost = loss / measured
         if round_ == FIT_ROUNDS:
             break
-        # Linear in (falloff[:-1], specular) given the albedo: normal equations.
-        weight = base_weight * robust
-        target = obs - diffuse_basis[..., -1, None] * albedo[None]
-        a2w = albedo[None] ** 2 * weight  # (m, N, c)
-        aw_t = albedo[None] * weight * target
-        rows = free.reshape(-1, k - 1)
-        lobe_rows = lobe.reshape(-1, 1)
-        a2w_rows = a2w.reshape(-1, c)
-        normal = np.empty((k - 1 + c, k - 1 + c))
-        normal[:k - 1, :k - 1] = (rows * a2w_rows.sum(axis=1, keepdims=True)).T @ rows
-        cross = rows.T @ (lobe_rows * a2w_rows)
-        normal[:k - 1, k - 1:] = cross
-        normal[k - 1:, :k - 1] = cross.T
-        normal[k - 1:, k - 1:] = np.diag((lobe_rows ** 2 * a2w_rows).sum(axis=0))
-        aw_rows = aw_t.reshape(-1, c)
-        right = np.concatenate([rows.T @ aw_rows.sum(axis=1),
-                                (lobe_rows * aw_rows).sum(axis=0)])
-        total = weight.sum()
         normal /= total
         right /= total
         level = np.trace(normal) / len(normal)

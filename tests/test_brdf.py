@@ -164,3 +164,48 @@ def test_lights_exr_holds_every_image_exactly(tmp_path):
     back = np.concatenate([(bits[..., j:j + 1] >> np.arange(16)) & 1 for j in range(3)],
                           axis=-1)[..., :m]
     np.testing.assert_array_equal(back.astype(bool), flags)
+
+
+def test_compiled_fit_passes_are_the_plain_formulas():
+    """The BRDF fit's compiled passes against their numpy statement."""
+    from colorps import _brdf_kernels as kernels
+
+    rng = np.random.default_rng(7)
+    m, n, c, k = 9, 300, 3, len(DIFFUSE_KNOTS)  # more pixels than one chunk
+    obs = rng.uniform(0, 1, (m, n, c))
+    weight = np.where(rng.uniform(size=(m, n, c)) < 0.2, 0.0, rng.uniform(0.5, 2, (m, n, c)))
+    basis = rng.uniform(0, 1, (m, n, k))
+    lobe = rng.uniform(0, 1, (m, n))
+    falloff, specular = rng.uniform(0.5, 1, k), rng.uniform(0, 0.1, c)
+    robust = rng.uniform(0.2, 1, (m, n, c))
+    model = (basis @ falloff)[..., None] + lobe[..., None] * specular
+    wr = weight * robust
+    albedo = np.empty((n, c))
+    data = dict(obs=obs, weight=weight, basis=basis, lobe=lobe, falloff=falloff,
+                specular=specular)
+    kernels.fit_albedo(robust=robust, albedo=albedo, **data)
+    assert np.allclose(albedo, (wr * model * obs).sum(0) / (wr * model ** 2).sum(0))
+    relative = np.empty_like(obs)
+    kernels.relative_residuals(albedo=albedo, out=relative, **data)
+    expected_relative = (obs - albedo * model) * np.sqrt(weight)
+    assert np.allclose(relative, expected_relative)
+    threshold = np.median(np.abs(expected_relative[weight > 0]))
+    normal, right = np.empty((k - 1 + c,) * 2), np.empty(k - 1 + c)
+    loss, total = kernels.huber_normal_equations(robust=robust, albedo=albedo,
+                                                 threshold=threshold, normal=normal,
+                                                 right=right, **data)
+    size = np.abs(expected_relative)
+    factor = np.where(size <= threshold, 1.0, threshold / np.maximum(size, 1e-30))
+    assert np.allclose(robust, factor)
+    assert np.isclose(loss, np.where(size <= threshold, size ** 2,
+                                     2 * threshold * size - threshold ** 2).sum())
+    # Least squares in x = (falloff[:-1], specular), albedo fixed: rows of the design.
+    w = weight * factor
+    assert np.isclose(total, w.sum())
+    design = np.concatenate([np.repeat(basis[..., None, :-1], c, axis=2) * albedo[..., None],
+                             np.eye(c)[None, None] * (lobe[..., None, None] *
+                                                      albedo[..., None])], axis=-1)
+    target = obs - basis[..., -1:] * albedo
+    rows, ws = design.reshape(-1, k - 1 + c), w.reshape(-1)
+    assert np.allclose(normal, (rows * ws[:, None]).T @ rows)
+    assert np.allclose(right, (rows * ws[:, None]).T @ target.reshape(-1))

@@ -1,0 +1,139 @@
+"""Compiled passes of the BRDF fit (private; the API is :mod:`colorps.brdf`).
+
+One round of ``brdf._fit_at`` (alternating least squares at one shininess)
+over the measurements of N pixels in m images and c bands, without the
+(m, N, c) float64 temporaries numpy needs for each of its steps. The model of
+measurement (image i, pixel p, band b), relative to the light's intensity and
+the pixel's albedo a_pb, is::
+
+    model_ipb = sum_k basis_ipk falloff_k + lobe_ip specular_b
+
+with ``basis`` the diffuse falloff's hat functions times the cosine of
+incidence (K of them, the last one's coefficient fixed to 1) and ``lobe`` the
+highlight lobe times the cosine. Each measurement has a base weight w (0: not
+used) and a robust (Huber) factor r.
+
+Arrays (float64, passed by name): ``obs`` and ``weight`` (m, N, c), ``robust``
+(m, N, c) updated in place, ``basis`` (m, N, K), ``lobe`` (m, N), ``falloff``
+(K,), ``specular`` (c,), ``albedo`` (N, c).
+"""
+
+import numpy as np
+from numba import njit, prange
+
+#: Pixels per parallel chunk (each chunk sums its own normal equations).
+CHUNK_PIXELS = 128
+
+
+@njit(cache=True, inline="always")
+def _diffuse(basis, falloff, i, p):
+    total = 0.0
+    for k in range(falloff.size):
+        total += basis[i, p, k] * falloff[k]
+    return total
+
+
+@njit(cache=True, parallel=True)
+def fit_albedo(obs, weight, robust, basis, lobe, falloff, specular, albedo):
+    """albedo_pb = sum_i w r model obs / sum_i w r model^2 (in place)."""
+    m, n, c = obs.shape
+    chunks = (n + CHUNK_PIXELS - 1) // CHUNK_PIXELS
+    for chunk in prange(chunks):
+        first = chunk * CHUNK_PIXELS
+        stop = min(first + CHUNK_PIXELS, n)
+        num = np.zeros((stop - first, c))
+        den = np.zeros((stop - first, c))
+        for i in range(m):
+            for p in range(first, stop):
+                diffuse = _diffuse(basis, falloff, i, p)
+                for b in range(c):
+                    wr = weight[i, p, b] * robust[i, p, b]
+                    model = diffuse + lobe[i, p] * specular[b]
+                    num[p - first, b] += wr * model * obs[i, p, b]
+                    den[p - first, b] += wr * model * model
+        for p in range(first, stop):
+            for b in range(c):
+                albedo[p, b] = num[p - first, b] / max(den[p - first, b], 1e-30)
+
+
+@njit(cache=True, parallel=True)
+def relative_residuals(obs, weight, basis, lobe, falloff, specular, albedo, out):
+    """out_ipb = (obs - albedo model) sqrt(w): residuals relative to the pixel's scale."""
+    m, n, c = obs.shape
+    for i in prange(m):
+        for p in range(n):
+            diffuse = _diffuse(basis, falloff, i, p)
+            for b in range(c):
+                model = diffuse + lobe[i, p] * specular[b]
+                out[i, p, b] = (obs[i, p, b] - albedo[p, b] * model) * np.sqrt(weight[i, p, b])
+
+
+@njit(cache=True, parallel=True)
+def huber_normal_equations(obs, weight, robust, basis, lobe, falloff, specular, albedo,
+                           threshold, normal, right):
+    """Huber factors, loss and the next fit's normal equations, in one pass.
+
+    Sets ``robust`` to 1 where the relative residual is at most ``threshold``
+    and threshold / |residual| beyond. Writes into ``normal`` ((K - 1 + c)^2)
+    and ``right`` (K - 1 + c) the normal equations of the (falloff[:-1],
+    specular) least squares given the albedo, weighted by w r (not yet
+    divided by the total weight). Returns (summed Huber loss, total w r).
+    """
+    m, n, c = obs.shape
+    k = falloff.size
+    size = k - 1 + c
+    chunks = (n + CHUNK_PIXELS - 1) // CHUNK_PIXELS
+    normals = np.zeros((chunks, size, size))
+    rights = np.zeros((chunks, size))
+    losses = np.zeros(chunks)
+    totals = np.zeros(chunks)
+    for chunk in prange(chunks):
+        first = chunk * CHUNK_PIXELS
+        stop = min(first + CHUNK_PIXELS, n)
+        part = normals[chunk]
+        part_right = rights[chunk]
+        for i in range(m):
+            for p in range(first, stop):
+                diffuse = _diffuse(basis, falloff, i, p)
+                l_ip = lobe[i, p]
+                a2w_sum = 0.0
+                awt_sum = 0.0
+                for b in range(c):
+                    w = weight[i, p, b]
+                    if w == 0.0:
+                        robust[i, p, b] = 1.0
+                        continue
+                    a = albedo[p, b]
+                    model = diffuse + l_ip * specular[b]
+                    residual = abs((obs[i, p, b] - a * model) * np.sqrt(w))
+                    if residual <= threshold:
+                        r = 1.0
+                        losses[chunk] += residual * residual
+                    else:
+                        r = threshold / max(residual, 1e-30)
+                        losses[chunk] += 2.0 * threshold * residual - threshold * threshold
+                    robust[i, p, b] = r
+                    wr = w * r
+                    totals[chunk] += wr
+                    a2w = a * a * wr
+                    awt = a * wr * (obs[i, p, b] - basis[i, p, k - 1] * a)
+                    a2w_sum += a2w
+                    awt_sum += awt
+                    part[k - 1 + b, k - 1 + b] += l_ip * l_ip * a2w
+                    part_right[k - 1 + b] += l_ip * awt
+                    for j in range(k - 1):
+                        part[j, k - 1 + b] += basis[i, p, j] * l_ip * a2w
+                for j in range(k - 1):
+                    bj = basis[i, p, j]
+                    part_right[j] += bj * awt_sum
+                    for q in range(j, k - 1):
+                        part[j, q] += bj * basis[i, p, q] * a2w_sum
+    normal[:, :] = 0.0
+    right[:] = 0.0
+    for chunk in range(chunks):
+        normal += normals[chunk]
+        right += rights[chunk]
+    for j in range(size):  # mirror the upper triangle
+        for q in range(j + 1, size):
+            normal[q, j] = normal[j, q]
+    return losses.sum(), totals.sum()
