@@ -400,37 +400,41 @@ def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
 
 
 @njit(cache=True, parallel=True)
-def neighbour_steps(signatures, usable, out):
-    """Mean squared signature step from each pixel to its usable 4-neighbours.
+def neighbour_steps(signatures, usable, rows, out):
+    """Mean squared signature step from pixels to their usable 4-neighbours.
 
     Parameters
     ----------
     signatures : (H, W, B, m) float32
         Per-band unit signatures.
     usable : (H, W) bool
-    out : (H, W, B) float64
-        Written in place: mean over usable neighbours (both pixels usable) of
-        sum_i (g[q, b, i] - g[neighbour, b, i])^2; 0 with no such neighbour.
+    rows : (n,) int64
+        Flat pixel indices (y * W + x) to compute.
+    out : (H * W, B) float64
+        Written in place at ``rows``: mean over usable neighbours (both pixels
+        usable) of sum_i (g[q, b, i] - g[neighbour, b, i])^2; 0 with no such
+        neighbour.
     """
     h, w, n_bands, m = signatures.shape
-    for y in prange(h):
-        for x in range(w):
-            for b in range(n_bands):
-                out[y, x, b] = 0.0
-            if not usable[y, x]:
+    for j in prange(rows.size):
+        q = rows[j]
+        y, x = q // w, q % w
+        for b in range(n_bands):
+            out[q, b] = 0.0
+        if not usable[y, x]:
+            continue
+        count = 0
+        for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            ny, nx = y + dy, x + dx
+            if ny < 0 or ny >= h or nx < 0 or nx >= w or not usable[ny, nx]:
                 continue
-            count = 0
-            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                ny, nx = y + dy, x + dx
-                if ny < 0 or ny >= h or nx < 0 or nx >= w or not usable[ny, nx]:
-                    continue
-                count += 1
-                for b in range(n_bands):
-                    total = 0.0
-                    for i in range(m):
-                        d = np.float64(signatures[y, x, b, i]) - signatures[ny, nx, b, i]
-                        total += d * d
-                    out[y, x, b] += total
-            if count:
-                for b in range(n_bands):
-                    out[y, x, b] /= count
+            count += 1
+            for b in range(n_bands):
+                total = 0.0
+                for i in range(m):
+                    d = np.float64(signatures[y, x, b, i]) - signatures[ny, nx, b, i]
+                    total += d * d
+                out[q, b] += total
+        if count:
+            for b in range(n_bands):
+                out[q, b] /= count

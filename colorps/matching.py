@@ -183,8 +183,24 @@ class _LightSet:
     signatures: np.ndarray  # (Hg, Wg, B, m') float32
     norm2: np.ndarray       # (Hg, Wg, B)
     variance: np.ndarray    # (Hg, Wg, B)
-    resolution: np.ndarray  # (Hg, Wg, B) h^2
     usable: np.ndarray      # (Hg, Wg, B) bool
+    #: (Hg * Wg, B) h^2 (residuals.table_resolution), computed at the pixels
+    #: matched so far (NaN elsewhere): a subset's groups match few of them.
+    resolution: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        hg, wg, n_bands = self.usable.shape
+        self.resolution = np.full((hg * wg, n_bands), np.nan)
+
+    def resolution_at(self, rows: np.ndarray) -> np.ndarray:
+        """The whole (Hg * Wg, B) h^2 array, computed at least at ``rows``."""
+        todo = rows[np.isnan(self.resolution[rows, 0])]
+        if len(todo):
+            todo = np.arange(len(self.resolution)) if len(todo) > len(self.resolution) \
+                else np.unique(todo)
+            table_resolution(self.signatures, self.usable.all(axis=-1), todo,
+                             out=self.resolution)
+        return self.resolution
 
     @property
     def nbytes(self) -> int:
@@ -291,9 +307,8 @@ class Capture:
                                      np.ascontiguousarray(self.gauge_valid),
                                      float(self.min_norm), self._gauge_variance, sig, norm2,
                                      variance, usable)
-            self._light_sets[lights] = _LightSet(
-                signatures=sig, norm2=norm2, variance=variance,
-                resolution=table_resolution(sig, usable.all(axis=-1)), usable=usable)
+            self._light_sets[lights] = _LightSet(signatures=sig, norm2=norm2,
+                                                 variance=variance, usable=usable)
             self._forget_light_sets(keep=lights)
         return self._light_sets[lights]
 
@@ -342,6 +357,6 @@ class Capture:
             self.scene_ov, ys, xs, band_index, light_index, rows,
             gauge.signatures.reshape(-1, self.bands, len(lights)),
             gauge.norm2.reshape(-1, self.bands), gauge.variance.reshape(-1, self.bands),
-            gauge.resolution.reshape(-1, self.bands), self.model)
+            gauge.resolution_at(rows), self.model)
         return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
                            t_grid, t_lookup)

@@ -41,27 +41,36 @@ __all__ = ["table_resolution", "match_residual", "light_residuals", "MODEL_FLOOR
 MODEL_FLOOR = 0.005
 
 
-def table_resolution(signatures: np.ndarray, usable: np.ndarray) -> np.ndarray:
-    """Squared signature step h^2 from each gauge pixel to its usable 4-neighbours.
+def table_resolution(signatures: np.ndarray, usable: np.ndarray, rows=None,
+                     out: np.ndarray | None = None) -> np.ndarray:
+    """Squared signature step h^2 from gauge pixels to their usable 4-neighbours.
 
     Parameters
     ----------
     signatures : (H, W, B, m) ndarray
         Per-band unit signatures of the gauge.
     usable : (H, W) ndarray of bool
+    rows : (n,) array_like of int, optional
+        Flat pixel indices (y * W + x) to compute; default every pixel.
+    out : (H * W, B) ndarray of float64, optional
+        Written at ``rows`` (the rest is left as it is) and returned.
 
     Returns
     -------
-    (H, W, B) ndarray of float64
+    (H, W, B) ndarray of float64, or ``out``
         Mean over usable neighbours of |g_k(q) - g_k(neighbour)|^2 (0 where
         a pixel has none).
     """
     from . import _pixel_kernels
 
-    out = np.empty(signatures.shape[:3])
+    h, w, n_bands = signatures.shape[:3]
+    whole = out is None
+    if whole:
+        out = np.empty((h * w, n_bands))
+    rows = np.arange(h * w) if rows is None else np.asarray(rows, dtype=np.int64)
     _pixel_kernels.neighbour_steps(np.ascontiguousarray(signatures, dtype=np.float32),
-                                   np.ascontiguousarray(usable, dtype=bool), out)
-    return out
+                                   np.ascontiguousarray(usable, dtype=bool), rows, out)
+    return out.reshape(h, w, n_bands) if whole else out
 
 
 def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2,
