@@ -15,7 +15,7 @@ import numpy as np
 from . import __version__
 from .errors import ColorPSError, InputError
 from .gauge import DEFAULT_ALBEDO
-from .options import FLOAT_DARK_LEVEL, Options
+from .options import AUTO_MEMORY_FRACTION, FLOAT_DARK_LEVEL, Options
 from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
@@ -170,10 +170,13 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile", type=_positive_int, default=_DEFAULTS.tile, metavar="ROWS",
                         help="process the scene in bands of ROWS rows read from the files when "
                              "needed (same results; bounded memory for the matching)")
-    parser.add_argument("--memory-limit", dest="memory_limit_gib", type=_positive_float,
-                        default=_DEFAULTS.memory_limit_gib, metavar="GIB",
+    parser.add_argument("--memory-limit", dest="memory_limit_gib",
+                        type=_or_words(_positive_float, auto="auto", none=None),
+                        default=_DEFAULTS.memory_limit_gib, metavar="GIB|auto|none",
                         help="choose --tile so the run's estimated peak memory stays under "
-                             "GIB GiB (refused when even small tiles would not fit)")
+                             "GIB GiB (refused when even small tiles would not fit); auto: "
+                             f"{100 * AUTO_MEMORY_FRACTION:.0f}%% of the memory available at the start; "
+                             f"none: no limit (default: {_shown(_DEFAULTS.memory_limit_gib)})")
     parser.add_argument("--no-height", dest="height", action="store_false",
                         help="skip the height map, relief and overview pictures")
     parser.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,

@@ -19,13 +19,18 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Options", "FLOAT_DARK_LEVEL", "MIN_IMAGES", "dark_threshold"]
+__all__ = ["Options", "FLOAT_DARK_LEVEL", "MIN_IMAGES", "AUTO_MEMORY_FRACTION",
+           "dark_threshold"]
 
 #: Noise floor of one measurement of a floating-point image (linear units): the
 #: dark level that "auto" means for EXR / float TIFF files and for arrays.
 FLOAT_DARK_LEVEL = 1e-4 / 3
 #: Fewest images each mode can work with.
 MIN_IMAGES = {"mono": 3, "colour": 2}
+#: Share of the memory available at the start of a run that an "auto"
+#: ``memory_limit_gib`` lets it use (the rest for the system, other programs
+#: and the memory model's error).
+AUTO_MEMORY_FRACTION = 0.8
 
 _MODES = ("colour", "mono")
 _ENCODINGS = ("auto", "linear", "srgb")
@@ -105,11 +110,14 @@ class Options:
         Files only: refuse a stack whose decoded pixels (float32) would take
         more than this many GiB, before decoding any (headers are read first).
         A tiled run checks one tile against it.
-    memory_limit_gib : float or None
+    memory_limit_gib : float, "auto" or None
         Files only: choose ``tile`` so that the run's estimated peak memory
         stays under this many GiB (:func:`colorps.tiles.rows_for_memory`);
-        refuse the run when even the smallest tiles would not fit. None: no
-        limit (ignored when ``tile`` is given).
+        refuse the run when even the smallest tiles would not fit. "auto":
+        ``AUTO_MEMORY_FRACTION`` of the memory available when the run starts
+        (:func:`colorps.tiles.memory_limit`), so a capture larger than the
+        machine's memory runs in tiles instead of running out of it. None: no
+        limit. Ignored when ``tile`` is given.
     brdf : {"fitted", "lambert"}
         Virtual gauges only (``--lights``): the finish the gauge is rendered
         with. "fitted": a diffuse falloff and highlight fitted to the scene's
@@ -149,7 +157,7 @@ class Options:
     max_input_gib: float = 8.0
     brdf: Literal["fitted", "lambert"] = "fitted"
     tile: int | None = None
-    memory_limit_gib: float | None = None
+    memory_limit_gib: float | Literal["auto"] | None = "auto"
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -196,8 +204,9 @@ class Options:
         if self.tile is not None and (isinstance(self.tile, bool) or
                                       not isinstance(self.tile, int) or self.tile < 1):
             raise InputError(f"tile: expected a number of rows >= 1 or None, got {self.tile!r}")
-        if self.memory_limit_gib is not None and not _is_positive(self.memory_limit_gib):
-            raise InputError(f"memory_limit_gib: expected a value > 0 or None, "
+        if self.memory_limit_gib not in ("auto", None) and \
+                not _is_positive(self.memory_limit_gib):
+            raise InputError(f"memory_limit_gib: expected a value > 0, 'auto' or None, "
                              f"got {self.memory_limit_gib!r}")
         if not _is_positive(self.max_input_gib):
             raise InputError(f"max_input_gib: expected a value > 0, got {self.max_input_gib!r}")

@@ -86,8 +86,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                      noise_base, read_image, read_mask, read_stack)
     from .outputs import TILED_EXR_SIDE, prepare_output_dir, save_reconstruction
     from .reconstruct import reconstruct
-    from .tiles import (DEFAULT_TILE_ROWS, StackFiles, reconstruct_tiled, release_freed_memory,
-                        rows_for_memory)
+    from .tiles import (DEFAULT_TILE_ROWS, StackFiles, memory_limit, reconstruct_tiled,
+                        release_freed_memory, rows_for_memory)
 
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
@@ -99,10 +99,11 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     scene_infos = check_stack_files(scene_paths, name="scene")
     scene_info = scene_infos[0]
     requested_tile = options.tile
-    if options.tile is None and options.memory_limit_gib is not None:
+    limit_gib, limit_source = memory_limit(options.memory_limit_gib)
+    if options.tile is None and limit_gib is not None:
         options = options.replace(tile=rows_for_memory(
-            options.memory_limit_gib, (len(scene_paths), scene_info.height, scene_info.width,
-                                       scene_info.channels)))
+            limit_gib, (len(scene_paths), scene_info.height, scene_info.width,
+                        scene_info.channels), source=limit_source))
     if scheduler is not None and options.tile is None:
         options = options.replace(tile=DEFAULT_TILE_ROWS)
     tiled = options.tile is not None
@@ -118,11 +119,11 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                              f"GiB, more than --max-input-gib {options.max_input_gib:g}; "
                              "use fewer rows (--tile)")
         if lights is not None and "auto" in (options.read_noise, options.gain):
-            raise InputError(f"a tiled run ({_why_tiled(requested_tile)}) with --lights needs "
+            raise InputError(f"a tiled run ({_why_tiled(requested_tile, limit_source)}) with --lights needs "
                              "--read-noise and --gain: the noise of a virtual-gauge run is "
                              "fitted to the whole scene at once")
         if lights is not None and options.brdf == "fitted":
-            raise InputError(f"a tiled run ({_why_tiled(requested_tile)}) with --lights needs "
+            raise InputError(f"a tiled run ({_why_tiled(requested_tile, limit_source)}) with --lights needs "
                              "--brdf lambert: the finish of a virtual-gauge run is fitted to "
                              "the whole scene at once")
     if lights is not None:
@@ -221,7 +222,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         virtual_gauge=lights is not None, gauge_albedo=gauge_albedo,
         brdf=None if brdf is None else brdf.as_dict(), brdf_fits=fit_history,
         mask=None if mask_path is None else str(mask_path), channels=names,
-        options=options.as_dict(),
+        options=options.as_dict(), memory_limit_gib_used=limit_gib,
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
                           dark_level=gauge_levels.dark_level),
     )
@@ -236,9 +237,9 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     return result if finished is None else finished.result()
 
 
-def _why_tiled(requested_tile) -> str:
+def _why_tiled(requested_tile, limit_source: str) -> str:
     return "--tile" if requested_tile is not None else \
-        "--memory-limit too small for the whole scene, or --scheduler"
+        f"{limit_source} too small for the whole scene, or --scheduler"
 
 
 @contextlib.contextmanager

@@ -44,13 +44,13 @@ from .figures import overview_step
 from .gauge import Gauge
 from .matching import TABLE_CACHE_MIB, GaugeTables
 from .noise import NoiseModel
-from .options import Options
+from .options import AUTO_MEMORY_FRACTION, Options
 from .reconstruct import (LowSolvedWarning, Reconstruction, Timings, _median, _percentile,
                           first_residuals, low_solved_message, measured_model_scale,
                           model_scale_pixels, reconstruct)
 
 __all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "rows_for_memory",
-           "DEFAULT_TILE_ROWS"]
+           "memory_limit", "available_memory_bytes", "DEFAULT_TILE_ROWS"]
 
 #: Rows per tile when none are given: about 64 MiB of float32 per tile for 8 RGB
 #: images of 4096 columns.
@@ -73,7 +73,54 @@ FINISH_BYTES = 110
 MIN_TILE_ROWS = 16
 
 
-def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int]) -> int | None:
+def available_memory_bytes() -> int:
+    """Memory this process can use now, in bytes.
+
+    The system's available memory (``psutil.virtual_memory().available``:
+    free memory plus caches the system can drop), and inside a Dask worker no
+    more than the worker's own memory limit.
+    """
+    import sys
+
+    import psutil
+
+    available = psutil.virtual_memory().available
+    if "distributed" in sys.modules:  # only a process that uses Dask can be a worker
+        from distributed import get_worker
+
+        try:
+            worker_limit = get_worker().memory_manager.memory_limit
+        except ValueError:  # not in a worker
+            worker_limit = None
+        if worker_limit:
+            available = min(available, int(worker_limit))
+    return int(available)
+
+
+def memory_limit(setting: float | str | None) -> tuple[float | None, str]:
+    """The memory limit in GiB that ``Options.memory_limit_gib`` means now.
+
+    Returns
+    -------
+    limit_gib : float or None
+        The number given; for "auto", ``AUTO_MEMORY_FRACTION`` of
+        :func:`available_memory_bytes`; None for no limit.
+    source : str
+        How an error message names the limit (``--memory-limit 2 GiB``, or
+        the automatic limit with the memory it was taken from).
+    """
+    if setting is None:
+        return None, "no memory limit"
+    if setting == "auto":
+        available = available_memory_bytes() / 2 ** 30
+        limit = AUTO_MEMORY_FRACTION * available
+        return limit, (f"--memory-limit auto ({limit:.1f} GiB: {AUTO_MEMORY_FRACTION:.0%} of "
+                       f"the {available:.1f} GiB available)")
+    return float(setting), f"--memory-limit {setting:g} GiB"
+
+
+def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int], *,
+                    source: str | None = None) -> int | None:
     """Rows per tile that keep a run of an (m, H, W, c) scene under ``limit_gib``.
 
     Returns
@@ -84,8 +131,10 @@ def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int]) -> int |
     Raises
     ------
     InputError
-        When even MIN_TILE_ROWS rows would not fit, saying how much is needed.
+        When even MIN_TILE_ROWS rows would not fit, saying how much is needed
+        (and naming the limit as ``source``, default ``--memory-limit ...``).
     """
+    source = source or f"--memory-limit {limit_gib:g} GiB"
     m, h, w, c = shape
     mib = 2 ** 20
     limit = limit_gib * 2 ** 30
@@ -97,7 +146,7 @@ def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int]) -> int |
     rows = int(budget // row_bytes) if budget > 0 else 0
     if finish > limit or rows < MIN_TILE_ROWS:
         need = max(finish, limit - budget + row_bytes * MIN_TILE_ROWS) / 2 ** 30
-        raise InputError(f"--memory-limit {limit_gib:g} GiB: a {w}x{h} capture of {m} "
+        raise InputError(f"{source}: a {w}x{h} capture of {m} "
                          f"images needs about {need:.1f} GiB even in tiles of "
                          f"{MIN_TILE_ROWS} rows (its whole-image maps, height "
                          f"integration and outputs take {finish / 2 ** 30:.1f} GiB)")

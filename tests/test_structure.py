@@ -35,15 +35,15 @@ def test_cli_converts_every_option_text():
                       "--clip-level", "none", "--max-distance", "0.2", "--encoding", "srgb",
                       "--mesh", "obj", "--read-noise", "0.002", "--gain", "0",
                       "--no-band-weights", "--no-light-subsets", "--max-dropped-lights", "1",
-                      "--max-residual", "none")
+                      "--max-residual", "none", "--memory-limit", "none")
     assert got == Options(mode="mono", band=2, colourspace="Adobe RGB (1998)",
                           grid_n="auto", threads=1, dark_level=0.001, clip_level=None,
                           max_distance=0.2, encoding="srgb", mesh="obj", read_noise=0.002,
                           gain=0.0, band_weights=False, light_subsets=False,
-                          max_dropped_lights=1, max_residual=None)
+                          max_dropped_lights=1, max_residual=None, memory_limit_gib=None)
     assert cli_options("--band", "luminance", "--grid-n", "7", "--clip-level", "0.9",
-                       "--no-height").replace(mesh=None) == \
-        Options(band="luminance", grid_n=7, clip_level=0.9, height=False)
+                       "--no-height", "--memory-limit", "2.5").replace(mesh=None) == \
+        Options(band="luminance", grid_n=7, clip_level=0.9, height=False, memory_limit_gib=2.5)
 
 
 @pytest.mark.parametrize("field, value", [
@@ -51,7 +51,8 @@ def test_cli_converts_every_option_text():
     ("threads", 0), ("threads", True), ("dark_level", 0.0), ("dark_level", "none"),
     ("clip_level", -1.0), ("clip_level", float("nan")), ("max_distance", 0),
     ("read_noise", -0.1), ("gain", "big"), ("max_dropped_lights", -1), ("max_residual", 0),
-    ("encoding", "gamma"), ("mesh", "stl")])
+    ("encoding", "gamma"), ("mesh", "stl"), ("memory_limit_gib", "all"),
+    ("memory_limit_gib", 0)])
 def test_bad_option_names_its_field(field, value):
     with pytest.raises(InputError, match=f"^{field}: "):
         Options(**{field: value})

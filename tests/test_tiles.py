@@ -152,6 +152,11 @@ def test_dask_local_cluster_gives_the_untiled_maps(messy, tmp_path):
         from_files = reconstruct_tiled(StackFiles(tuple(paths), scene.shape), gauge_stack,
                                        gauge, tile=20, mask=mask, client=client)
         assert len(client.scheduler_info()["workers"]) == 2
+        # --memory-limit auto inside a worker: no more than the worker's own limit.
+        from colorps.tiles import available_memory_bytes
+
+        worker_limit = min(w["memory_limit"] for w in client.scheduler_info()["workers"].values())
+        assert 0 < client.submit(available_memory_bytes, pure=False).result() <= worker_limit
     assert_same(whole, in_memory)
     assert_same(whole, from_files)
 
@@ -234,3 +239,44 @@ def test_memory_limit_on_the_command_line(tmp_path, capsys):
     assert report["options"]["tile"] == 20
     assert np.array_equal(read_image(tmp_path / "tiled" / "normal.exr")[0],
                           read_image(tmp_path / "ok" / "normal.exr")[0], equal_nan=True)
+
+
+def test_memory_limit_auto_tiles_a_capture_larger_than_the_memory(tmp_path, capsys,
+                                                                   monkeypatch):
+    import psutil
+
+    import colorps.tiles
+    from colorps.cli import main
+    from colorps.matching import TABLE_CACHE_MIB
+    from colorps.options import AUTO_MEMORY_FRACTION
+    from colorps.tiles import (BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES,
+                               available_memory_bytes)
+
+    assert 0 < available_memory_bytes() <= psutil.virtual_memory().total
+    data = tmp_path / "capture"
+    synth.write_synthetic(data, size=48, images=6, noise=0.002)
+    args = ["reconstruct", "--scene", str(data / "scene_*.exr"), "--gauge",
+            str(data / "gauge_*.exr"), "--sphere", "auto", "--quiet", "--no-height"]
+    assert main(args + ["--out", str(tmp_path / "whole"), "--memory-limit", "none"]) == 0
+    report = json.loads((tmp_path / "whole" / "report.json").read_text())
+    assert report["options"]["tile"] is None and report["memory_limit_gib_used"] is None
+    # A machine with memory for 20 rows of this capture (the default is "auto").
+    limit = ((BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
+             + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48)
+    monkeypatch.setattr(colorps.tiles, "available_memory_bytes",
+                        lambda: limit / AUTO_MEMORY_FRACTION)
+    assert main(args + ["--out", str(tmp_path / "auto")]) == 0
+    report = json.loads((tmp_path / "auto" / "report.json").read_text())
+    assert report["options"]["memory_limit_gib"] == "auto"
+    assert report["options"]["tile"] == 20
+    assert report["memory_limit_gib_used"] == pytest.approx(limit / 2 ** 30)
+    for name in ("normal", "albedo"):
+        assert np.array_equal(read_image(tmp_path / "auto" / f"{name}.exr")[0],
+                              read_image(tmp_path / "whole" / f"{name}.exr")[0], equal_nan=True)
+    # A machine too small even for 16-row tiles: refused before any output, saying why.
+    monkeypatch.setattr(colorps.tiles, "available_memory_bytes", lambda: 2 ** 28)
+    assert main(args + ["--out", str(tmp_path / "small")]) == 1
+    err = capsys.readouterr().err
+    assert "--memory-limit auto (0.2 GiB: 80% of the 0.2 GiB available)" in err
+    assert "needs about" in err
+    assert not (tmp_path / "small").exists()
