@@ -205,9 +205,11 @@ def _unit(scene_ov, y, x, b, light, norm):
 
 
 @njit(cache=True, parallel=True)
-def light_set(ov, lights, valid, min_norm, variance, signatures, norm2, mean_variance,
-              usable):
+def light_set(ov, lights, valid, min_norm, variance, norm2, mean_variance, usable):
     """The gauge over some lights, in one pass over its OVs.
+
+    Its unit signatures are not stored: the kernels that need them divide the
+    OVs by sqrt(norm2) where they read them (:func:`_unit`, as the scene's).
 
     Parameters
     ----------
@@ -222,9 +224,6 @@ def light_set(ov, lights, valid, min_norm, variance, signatures, norm2, mean_var
 
     Outputs (written in place)
     --------------------------
-    signatures : (H, W, B, L) float32
-        Unit signatures over ``lights`` (as group_queries makes them), 0 where
-        the band is not usable.
     norm2 : (H, W, B) float64
         |OV|^2 over ``lights``.
     mean_variance : (H, W, B) float32
@@ -238,33 +237,35 @@ def light_set(ov, lights, valid, min_norm, variance, signatures, norm2, mean_var
         for x in range(w):
             for b in range(n_bands):
                 total = _band_norm2(ov, y, x, b, lights)
-                ok = valid[y, x, b] and np.sqrt(total) > min_norm
-                usable[y, x, b] = ok
+                usable[y, x, b] = valid[y, x, b] and np.sqrt(total) > min_norm
                 norm2[y, x, b] = total
                 spread = 0.0
                 for j in range(n_lights):
                     spread += variance[y, x, b, lights[j]]
                 mean_variance[y, x, b] = spread / n_lights
-                divisor = _divisor(total)
-                for j in range(n_lights):
-                    signatures[y, x, b, j] = _unit(ov, y, x, b, lights[j], divisor) if ok \
-                        else np.float32(0.0)
 
 
 @njit(cache=True, parallel=True)
-def group_table(signatures, pixels, bands, weights, table):
-    """The table of a group: weighted gauge signatures of some bands at some pixels.
+def group_table(gauge_ov, lights, gauge_norm2, pixels, bands, weights, table):
+    """The table of a group: weighted unit gauge signatures of some bands at some
+    pixels over some lights.
 
-    signatures (Hg * Wg, B, L) float32 (a light set's), pixels (K,) int64 flat
-    gauge pixels, bands (k,) int64, weights (k,) float32; table (K, k * L)
-    float32 written in place, band-major.
+    gauge_ov (Hg, Wg, B, m) float32, lights (L,) int64, gauge_norm2 (Hg, Wg, B)
+    float64 (|OV|^2 over ``lights``), pixels (K,) int64 flat gauge pixels (usable
+    in every band of ``bands``), bands (k,) int64, weights (k,) float32; table
+    (K, k * L) float32 written in place, band-major, each entry as
+    :func:`group_queries` makes a scene's.
     """
-    n_lights = signatures.shape[2]
+    width = gauge_ov.shape[1]
+    n_lights = lights.size
     for e in prange(pixels.size):
-        q = pixels[e]
+        y, x = pixels[e] // width, pixels[e] % width
         for i in range(bands.size):
+            b = bands[i]
+            norm = _divisor(gauge_norm2[y, x, b])
             for j in range(n_lights):
-                table[e, i * n_lights + j] = signatures[q, bands[i], j] * weights[i]
+                table[e, i * n_lights + j] = _unit(gauge_ov, y, x, b, lights[j], norm) * \
+                    weights[i]
 
 
 @njit(cache=True, parallel=True)
@@ -299,7 +300,7 @@ def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2,
+def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2,
                     gauge_var, resolution, read2, gain, pixel_kind, levels, table, floor2,
                     residual, distance):
     """Residual and signature distance of each pixel's match (colorps.residuals).
@@ -310,10 +311,12 @@ def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm
         As for group_queries.
     rows : (P,) int64
         Each pixel's gauge match (flat gauge pixel index).
-    gauge_sig : (Hg * Wg, B, L) float32
-        Unit gauge signatures over ``lights``.
+    gauge_ov : (Hg, Wg, B, m) float32
+        The gauge's OVs (its unit signatures over ``lights`` are these divided
+        by sqrt(gauge_norm2)).
     gauge_norm2, gauge_var, resolution : (Hg * Wg, B)
-        Squared OV norms, mean measurement variances and h^2 of the gauge.
+        Squared OV norms and mean measurement variances over ``lights``, and
+        h^2, of the gauge.
     read2, gain, pixel_kind, levels, table
         The scene's noise model (see mean_variance).
     floor2 : float
@@ -327,8 +330,10 @@ def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm
         sqrt(mean over bands of d_k): the plain signature distance per band.
     """
     n_lights, n_bands = lights.size, bands.size
+    width = gauge_ov.shape[1]
     for p in prange(ys.size):
         y, x, q = ys[p], xs[p], rows[p]
+        qy, qx = q // width, q % width
         ratio_sum = 0.0
         d_sum = 0.0
         for k in range(n_bands):
@@ -340,10 +345,12 @@ def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm
             variance = np.float64(np.float32(variance / n_lights))
             total = _band_norm2(scene_ov, y, x, b, lights)
             norm = _divisor(total)
+            gauge_norm = _divisor(gauge_norm2[q, b])
             d = 0.0
             for j in range(n_lights):
                 unit = _unit(scene_ov, y, x, b, lights[j], norm)
-                diff = np.float64(unit) - np.float64(gauge_sig[q, b, j])
+                diff = np.float64(unit) - np.float64(_unit(gauge_ov, qy, qx, b, lights[j],
+                                                           gauge_norm))
                 d += diff * diff
             expected = (n_lights - 1) * (variance / total + gauge_var[q, b] / gauge_norm2[q, b]) \
                 + resolution[q, b] / 6.0 + floor2
@@ -400,13 +407,17 @@ def mean_variance(values, read2, gain, pixel_kind, levels, table, out):
 
 
 @njit(cache=True, parallel=True)
-def neighbour_steps(signatures, usable, rows, out):
+def neighbour_steps(ov, lights, norm2, usable, rows, out):
     """Mean squared signature step from pixels to their usable 4-neighbours.
 
     Parameters
     ----------
-    signatures : (H, W, B, m) float32
-        Per-band unit signatures.
+    ov : (H, W, B, m) float32
+        Per-band OVs (or unit signatures, with ``norm2`` all 1).
+    lights : (L,) int64
+        The lights of the signatures.
+    norm2 : (H, W, B) float64
+        |OV|^2 over ``lights``: a signature is ov / sqrt(norm2) (:func:`_unit`).
     usable : (H, W) bool
     rows : (n,) int64
         Flat pixel indices (y * W + x) to compute.
@@ -415,7 +426,8 @@ def neighbour_steps(signatures, usable, rows, out):
         usable) of sum_i (g[q, b, i] - g[neighbour, b, i])^2; 0 with no such
         neighbour.
     """
-    h, w, n_bands, m = signatures.shape
+    h, w, n_bands, _ = ov.shape
+    n_lights = lights.size
     for j in prange(rows.size):
         q = rows[j]
         y, x = q // w, q % w
@@ -430,9 +442,11 @@ def neighbour_steps(signatures, usable, rows, out):
                 continue
             count += 1
             for b in range(n_bands):
+                norm, other_norm = _divisor(norm2[y, x, b]), _divisor(norm2[ny, nx, b])
                 total = 0.0
-                for i in range(m):
-                    d = np.float64(signatures[y, x, b, i]) - signatures[ny, nx, b, i]
+                for i in range(n_lights):
+                    d = np.float64(_unit(ov, y, x, b, lights[i], norm)) - \
+                        _unit(ov, ny, nx, b, lights[i], other_norm)
                     total += d * d
                 out[q, b] += total
         if count:

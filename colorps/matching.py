@@ -44,7 +44,7 @@ BRUTE_FORCE_BLOCK = 1 << 22
 #: images takes about 16): the ones first built, which are the largest groups'.
 TABLE_CACHE_MIB = 192
 #: A capture keeps the gauge over the light subsets it matched last up to this many
-#: MiB (a 201 x 201 gauge of 96 RGB images takes 46 MiB a subset).
+#: MiB (a 201 x 201 gauge of RGB images takes 2.5 MiB a subset).
 LIGHT_SET_CACHE_MIB = 256
 
 
@@ -178,9 +178,15 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
 
 @dataclass
 class _LightSet:
-    """The gauge over one subset of lights: unit signatures and what residuals need."""
+    """The gauge over one subset of lights: what tables and residuals need.
 
-    signatures: np.ndarray  # (Hg, Wg, B, m') float32
+    Its unit signatures are the gauge's OVs over ``lights`` divided by
+    sqrt(norm2), computed where the kernels read them (stored, they took
+    46 MiB a subset for a 201 x 201 gauge of 96 RGB images).
+    """
+
+    gauge_ov: np.ndarray    # (Hg, Wg, B, m) float32, every light (shared, not owned)
+    lights: np.ndarray      # (m',) int64
     norm2: np.ndarray       # (Hg, Wg, B)
     variance: np.ndarray    # (Hg, Wg, B)
     usable: np.ndarray      # (Hg, Wg, B) bool
@@ -198,14 +204,15 @@ class _LightSet:
         if len(todo):
             todo = np.arange(len(self.resolution)) if len(todo) > len(self.resolution) \
                 else np.unique(todo)
-            table_resolution(self.signatures, self.usable.all(axis=-1), todo,
-                             out=self.resolution)
+            table_resolution(self.gauge_ov, self.usable.all(axis=-1), todo,
+                             out=self.resolution, lights=self.lights, norm2=self.norm2)
         return self.resolution
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.signatures, self.norm2, self.variance,
-                                      self.resolution, self.usable))
+        """Bytes this light set owns (not the shared gauge OVs)."""
+        return sum(a.nbytes for a in (self.norm2, self.variance, self.resolution,
+                                      self.usable))
 
 
 @dataclass(frozen=True)
@@ -275,6 +282,7 @@ class Capture:
         return self.scene_ov.shape[-2]
 
     def __post_init__(self) -> None:
+        self.gauge_ov = np.ascontiguousarray(self.gauge_ov)  # the kernels read it often
         if self.tables is not None:
             self.tables.attach(self.gauge_fingerprint())
 
@@ -298,17 +306,16 @@ class Capture:
                 model = self.gauge_model or self.model
                 self._gauge_variance = np.ascontiguousarray(model.sigma(self.gauge_ov) ** 2)
             hg, wg, n_bands, _ = self.gauge_ov.shape
-            sig = np.empty((hg, wg, n_bands, len(lights)), dtype=np.float32)
             norm2 = np.empty((hg, wg, n_bands))
             variance = np.empty((hg, wg, n_bands), dtype=np.float32)
             usable = np.empty((hg, wg, n_bands), dtype=bool)
-            _pixel_kernels.light_set(np.ascontiguousarray(self.gauge_ov),
-                                     np.array(lights, dtype=np.int64),
+            light_index = np.array(lights, dtype=np.int64)
+            _pixel_kernels.light_set(self.gauge_ov, light_index,
                                      np.ascontiguousarray(self.gauge_valid),
-                                     float(self.min_norm), self._gauge_variance, sig, norm2,
+                                     float(self.min_norm), self._gauge_variance, norm2,
                                      variance, usable)
-            self._light_sets[lights] = _LightSet(signatures=sig, norm2=norm2,
-                                                 variance=variance, usable=usable)
+            self._light_sets[lights] = _LightSet(gauge_ov=self.gauge_ov, lights=light_index,
+                                                 norm2=norm2, variance=variance, usable=usable)
             self._forget_light_sets(keep=lights)
         return self._light_sets[lights]
 
@@ -339,8 +346,8 @@ class Capture:
         band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
         table_rows = np.flatnonzero(table_px)
         table = np.empty((len(table_rows), len(bands) * len(lights)), dtype=np.float32)
-        _pixel_kernels.group_table(gauge.signatures.reshape(-1, self.bands, len(lights)),
-                                   table_rows, band_index, scale[:, 0], table)
+        _pixel_kernels.group_table(self.gauge_ov, light_index, gauge.norm2, table_rows,
+                                   band_index, scale[:, 0], table)
         ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
         queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
         _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
@@ -355,8 +362,7 @@ class Capture:
         t_lookup = time.perf_counter() - t0
         residual, distance = match_residual(
             self.scene_ov, ys, xs, band_index, light_index, rows,
-            gauge.signatures.reshape(-1, self.bands, len(lights)),
-            gauge.norm2.reshape(-1, self.bands), gauge.variance.reshape(-1, self.bands),
+            self.gauge_ov, gauge.norm2.reshape(-1, self.bands), gauge.variance.reshape(-1, self.bands),
             gauge.resolution_at(rows), self.model)
         return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
                            t_grid, t_lookup)

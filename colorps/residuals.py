@@ -42,18 +42,26 @@ MODEL_FLOOR = 0.005
 
 
 def table_resolution(signatures: np.ndarray, usable: np.ndarray, rows=None,
-                     out: np.ndarray | None = None) -> np.ndarray:
+                     out: np.ndarray | None = None, *, lights=None,
+                     norm2: np.ndarray | None = None) -> np.ndarray:
     """Squared signature step h^2 from gauge pixels to their usable 4-neighbours.
 
     Parameters
     ----------
     signatures : (H, W, B, m) ndarray
-        Per-band unit signatures of the gauge.
+        Per-band unit signatures of the gauge, or with ``norm2`` the OVs they
+        are made of.
     usable : (H, W) ndarray of bool
     rows : (n,) array_like of int, optional
         Flat pixel indices (y * W + x) to compute; default every pixel.
     out : (H * W, B) ndarray of float64, optional
         Written at ``rows`` (the rest is left as it is) and returned.
+    lights : sequence of int, optional
+        With ``norm2``: the lights the signatures are over (default all).
+    norm2 : (H, W, B) ndarray of float64, optional
+        |OV|^2 over ``lights``: the signatures are then the OVs over ``lights``
+        divided by sqrt(norm2), computed where they are read (the gauge over a
+        light subset is not stored as signatures).
 
     Returns
     -------
@@ -63,17 +71,21 @@ def table_resolution(signatures: np.ndarray, usable: np.ndarray, rows=None,
     """
     from . import _pixel_kernels
 
-    h, w, n_bands = signatures.shape[:3]
+    h, w, n_bands, m = signatures.shape
     whole = out is None
     if whole:
         out = np.empty((h * w, n_bands))
     rows = np.arange(h * w) if rows is None else np.asarray(rows, dtype=np.int64)
-    _pixel_kernels.neighbour_steps(np.ascontiguousarray(signatures, dtype=np.float32),
+    if norm2 is None:  # already unit signatures: divide by 1, which is exact
+        lights, norm2 = None, np.ones((h, w, n_bands))
+    lights = np.arange(m) if lights is None else np.asarray(lights, dtype=np.int64)
+    _pixel_kernels.neighbour_steps(np.ascontiguousarray(signatures, dtype=np.float32), lights,
+                                   np.ascontiguousarray(norm2, dtype=np.float64),
                                    np.ascontiguousarray(usable, dtype=bool), rows, out)
     return out.reshape(h, w, n_bands) if whole else out
 
 
-def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2,
+def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2,
                    gauge_var, resolution, model: NoiseModel
                    ) -> tuple[np.ndarray, np.ndarray]:
     """The residual r of matched pixels (see the module docstring), and their
@@ -89,8 +101,9 @@ def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2
         The bands matched and the lights used (m' of them).
     rows : (P,) ndarray of int
         Each pixel's match: a flat gauge pixel index.
-    gauge_sig : (Hg * Wg, B, m') ndarray of float32
-        Unit gauge signatures over ``lights``.
+    gauge_ov : (Hg, Wg, B, m) ndarray of float32
+        The gauge's OVs over every light (its unit signatures over ``lights``
+        are these divided by sqrt(gauge_norm2)).
     gauge_norm2, gauge_var : (Hg * Wg, B) ndarray
         Squared gauge OV norms and mean measurement variances over ``lights``.
     resolution : (Hg * Wg, B) ndarray
@@ -110,7 +123,7 @@ def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_sig, gauge_norm2
     _pixel_kernels.group_residuals(
         scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
         np.asarray(bands, np.int64), np.asarray(lights, np.int64), np.asarray(rows, np.int64),
-        np.ascontiguousarray(gauge_sig, np.float32), np.ascontiguousarray(gauge_norm2),
+        np.ascontiguousarray(gauge_ov, np.float32), np.ascontiguousarray(gauge_norm2),
         np.ascontiguousarray(gauge_var), np.ascontiguousarray(resolution),
         *model.kernel_args(), MODEL_FLOOR ** 2, residual, distance)
     return residual, distance
