@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 import warnings
@@ -303,6 +304,41 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"colorps: warning: {message}", file=sys.stderr)
 
 
+#: Shown once when a run has to compile colorps' numba kernels: the first run
+#: after installing, which spends about 45 s of a 2-core machine on it (the
+#: compiled kernels are cached beside the package, so later runs skip this).
+COMPILE_NOTICE = ("colorps: compiling its numba kernels for this machine (once after "
+                  "installing: about a minute; later runs load them from the cache)")
+
+
+@contextlib.contextmanager
+def _compile_notice(enabled: bool = True, package: str = __package__):
+    """Within the context, print COMPILE_NOTICE to stderr the first time numba
+    compiles a kernel of ``package`` (numba reports a compile only when its
+    cache has none for the kernel), so a long first run is not taken for a hang."""
+    from numba.core import event
+
+    class Notice(event.Listener):
+        shown = False
+
+        def on_start(self, ev):
+            module = getattr(ev.data["dispatcher"].py_func, "__module__", "") or ""
+            if not self.shown and module.split(".")[0] == package:
+                self.shown = True
+                from tqdm import tqdm
+
+                tqdm.write(COMPILE_NOTICE, file=sys.stderr)  # keeps progress bars intact
+
+        def on_end(self, ev):
+            pass
+
+    if not enabled:
+        yield
+        return
+    with event.install_listener("numba:compile", Notice()):
+        yield
+
+
 def main(argv=None) -> int:
     """Run ``colorps`` with ``argv`` (default: sys.argv); return the exit code.
 
@@ -321,7 +357,7 @@ def main(argv=None) -> int:
         if args.light_intensities is not None and args.lights is None:
             parser.error("--light-intensities needs --lights")
     previous = signal.signal(signal.SIGTERM, _terminate)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _compile_notice(not getattr(args, "quiet", False)):
         warnings.simplefilter("always")  # the CLI prints every warning it meets
         warnings.showwarning = _show_warning
         return _run(args, previous)

@@ -177,3 +177,28 @@ def test_channel_mismatch_across_stacks_and_small_radius(sample, tmp_path, capsy
     assert main(args) == 1
     assert "too small" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def _uncached_kernel(module: str):
+    """A new numba kernel that claims to live in ``module`` (never in numba's cache)."""
+    import numba
+
+    namespace = {"__name__": module}
+    exec("def kernel(x):\n    return x + 1\n", namespace)
+    return numba.njit(namespace["kernel"])
+
+
+def test_first_compile_of_a_colorps_kernel_is_announced_once(capsys):
+    from colorps.cli import COMPILE_NOTICE, _compile_notice
+
+    with _compile_notice():
+        assert _uncached_kernel("colorps._notice_test")(1) == 2
+        assert _uncached_kernel("colorps._notice_test")(2.0) == 3.0  # a second compile
+    assert capsys.readouterr().err.count(COMPILE_NOTICE) == 1
+    with _compile_notice():
+        _uncached_kernel("elsewhere")(1)  # not colorps': no notice
+    with _compile_notice(enabled=False):  # --quiet
+        _uncached_kernel("colorps._notice_test")(1)
+    assert COMPILE_NOTICE not in capsys.readouterr().err
+    _uncached_kernel("colorps._notice_test")(1)  # outside the context: no listener left
+    assert COMPILE_NOTICE not in capsys.readouterr().err
