@@ -118,12 +118,13 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                              f"{len(scene_paths)} images takes {tile_bytes / 2 ** 30:.1f} "
                              f"GiB, more than --max-input-gib {options.max_input_gib:g}; "
                              "use fewer rows (--tile)")
+        why = _why_tiled(requested_tile, limit_source)
         if lights is not None and "auto" in (options.read_noise, options.gain):
-            raise InputError(f"a tiled run ({_why_tiled(requested_tile, limit_source)}) with --lights needs "
+            raise InputError(f"a tiled run ({why}) with --lights needs "
                              "--read-noise and --gain: the noise of a virtual-gauge run is "
                              "fitted to the whole scene at once")
         if lights is not None and options.brdf == "fitted":
-            raise InputError(f"a tiled run ({_why_tiled(requested_tile, limit_source)}) with --lights needs "
+            raise InputError(f"a tiled run ({why}) with --lights needs "
                              "--brdf lambert: the finish of a virtual-gauge run is fitted to "
                              "the whole scene at once")
     if lights is not None:
