@@ -9,6 +9,7 @@ write the outputs (:mod:`colorps.outputs`). Option values arrive converted
 from __future__ import annotations
 
 import contextlib
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, Sequence
@@ -98,14 +99,17 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     limit = options.max_input_gib * 2 ** 30
     scene_infos = check_stack_files(scene_paths, name="scene")
     scene_info = scene_infos[0]
-    requested_tile = options.tile
     limit_gib, limit_source = memory_limit(options.memory_limit_gib)
+    why_tiled = None if options.tile is None else f"--tile {options.tile}"
     if options.tile is None and limit_gib is not None:
         options = options.replace(tile=rows_for_memory(
             limit_gib, (len(scene_paths), scene_info.height, scene_info.width,
                         scene_info.channels), source=limit_source))
+        if options.tile is not None:
+            why_tiled = f"{limit_source} is too small for the whole scene"
     if scheduler is not None and options.tile is None:
         options = options.replace(tile=DEFAULT_TILE_ROWS)
+        why_tiled = "--scheduler: tiles are its tasks"
     tiled = options.tile is not None
     if not tiled:
         check_decoded_size(scene_infos, limit, name="scene")
@@ -118,13 +122,12 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                              f"{len(scene_paths)} images takes {tile_bytes / 2 ** 30:.1f} "
                              f"GiB, more than --max-input-gib {options.max_input_gib:g}; "
                              "use fewer rows (--tile)")
-        why = _why_tiled(requested_tile, limit_source)
         if lights is not None and "auto" in (options.read_noise, options.gain):
-            raise InputError(f"a tiled run ({why}) with --lights needs "
+            raise InputError(f"a tiled run ({why_tiled}) with --lights needs "
                              "--read-noise and --gain: the noise of a virtual-gauge run is "
                              "fitted to the whole scene at once")
         if lights is not None and options.brdf == "fitted":
-            raise InputError(f"a tiled run ({why}) with --lights needs "
+            raise InputError(f"a tiled run ({why_tiled}) with --lights needs "
                              "--brdf lambert: the finish of a virtual-gauge run is fitted to "
                              "the whole scene at once")
     if lights is not None:
@@ -145,6 +148,11 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         if not mask.any():
             raise InputError(f"{mask_path}: the mask selects no pixel (non-zero = solve)")
     if tiled:
+        if progress:  # a tiled run is slower: say why it is tiled
+            from tqdm import tqdm
+
+            tqdm.write(f"colorps: the scene's {scene_info.height} rows in tiles of "
+                       f"{options.tile} ({why_tiled})", file=sys.stderr)
         scene = StackFiles(tuple(scene_paths), (len(scene_paths), scene_info.height,
                                                 scene_info.width, scene_info.channels),
                            options.encoding)
@@ -224,6 +232,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         brdf=None if brdf is None else brdf.as_dict(), brdf_fits=fit_history,
         mask=None if mask_path is None else str(mask_path), channels=names,
         options=options.as_dict(), memory_limit_gib_used=limit_gib,
+        tiled_because=why_tiled,
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
                           dark_level=gauge_levels.dark_level),
     )
@@ -236,11 +245,6 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                             report=report, mesh=options.mesh_kinds, overwrite=overwrite,
                             finished=finished, exr_tile=TILED_EXR_SIDE if tiled else None)
     return result if finished is None else finished.result()
-
-
-def _why_tiled(requested_tile, limit_source: str) -> str:
-    return "--tile" if requested_tile is not None else \
-        f"{limit_source} too small for the whole scene, or --scheduler"
 
 
 @contextlib.contextmanager

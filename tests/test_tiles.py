@@ -260,15 +260,22 @@ def test_memory_limit_auto_tiles_a_capture_larger_than_the_memory(tmp_path, caps
     assert main(args + ["--out", str(tmp_path / "whole"), "--memory-limit", "none"]) == 0
     report = json.loads((tmp_path / "whole" / "report.json").read_text())
     assert report["options"]["tile"] is None and report["memory_limit_gib_used"] is None
+    assert report["tiled_because"] is None
     # A machine with memory for 20 rows of this capture (the default is "auto").
     limit = ((BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
              + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48)
     monkeypatch.setattr(colorps.tiles, "available_memory_bytes",
                         lambda: limit / AUTO_MEMORY_FRACTION)
-    assert main(args + ["--out", str(tmp_path / "auto")]) == 0
+    capsys.readouterr()
+    loud = [a for a in args if a != "--quiet"]
+    assert main(loud + ["--out", str(tmp_path / "auto")]) == 0
     report = json.loads((tmp_path / "auto" / "report.json").read_text())
     assert report["options"]["memory_limit_gib"] == "auto"
     assert report["options"]["tile"] == 20
+    why = report["tiled_because"]
+    assert why.startswith("--memory-limit auto (") and why.endswith(
+        "is too small for the whole scene")
+    assert f"colorps: the scene's 48 rows in tiles of 20 ({why})" in capsys.readouterr().err
     assert report["memory_limit_gib_used"] == pytest.approx(limit / 2 ** 30)
     for name in ("normal", "albedo"):
         assert np.array_equal(read_image(tmp_path / "auto" / f"{name}.exr")[0],
