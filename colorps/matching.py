@@ -362,7 +362,8 @@ class Capture:
         t_lookup = time.perf_counter() - t0
         residual, distance = match_residual(
             self.scene_ov, ys, xs, band_index, light_index, rows,
-            self.gauge_ov, gauge.norm2.reshape(-1, self.bands), gauge.variance.reshape(-1, self.bands),
+            self.gauge_ov, gauge.norm2.reshape(-1, self.bands),
+            gauge.variance.reshape(-1, self.bands),
             gauge.resolution_at(rows), self.model)
         return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
                            t_grid, t_lookup)
