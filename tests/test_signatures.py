@@ -113,3 +113,23 @@ def test_table_resolution_matches_brute_force():
             if steps:
                 expected[y, x] = np.mean(steps, axis=0)
     np.testing.assert_allclose(table_resolution(sig, usable), expected, rtol=1e-6)
+
+
+def test_table_resolution_of_ovs_over_a_light_subset_is_that_of_their_unit_signatures():
+    from colorps.residuals import table_resolution
+
+    rng = np.random.default_rng(5)
+    ov = rng.random((9, 11, 2, 6)).astype(np.float32)
+    ov[2, 3, 1] = 0.0  # a zero OV stays zero
+    usable = rng.random((9, 11)) < 0.7
+    lights = [0, 2, 3, 5]
+    sub = ov[..., lights].astype(np.float64)
+    norm2 = (sub ** 2).sum(axis=-1)
+    unit = np.divide(sub, np.sqrt(norm2)[..., None], out=np.zeros_like(sub),
+                     where=norm2[..., None] > 0).astype(np.float32)
+    rows = np.array([0, 14, 25, 98])
+    out = np.zeros((99, 2))
+    got = table_resolution(ov, usable, rows, out, lights=lights, norm2=norm2)
+    np.testing.assert_allclose(got[rows], table_resolution(unit, usable)
+                               .reshape(-1, 2)[rows], rtol=1e-5, atol=1e-12)
+    assert not got[np.setdiff1d(np.arange(99), rows)].any()  # only ``rows`` written
