@@ -296,8 +296,27 @@ class _Terminated(KeyboardInterrupt):
     """SIGTERM, handled like Ctrl-C: every temporary file is removed on the way out."""
 
 
-def _terminate(signum, frame):
-    raise _Terminated
+@contextlib.contextmanager
+def _signals_caught():
+    """Within the context, turn SIGINT (unless ignored, as in a background job)
+    into KeyboardInterrupt and SIGTERM into _Terminated, and record each in the
+    list yielded: an interrupt that arrives while a library is mid-call can
+    surface as that library's error instead, and must still count as one."""
+    received: list[int] = []
+
+    def handler(signum, frame):
+        received.append(signum)
+        raise _Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+    wanted = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        wanted.append(signal.SIGINT)
+    previous = {signum: signal.signal(signum, handler) for signum in wanted}
+    try:
+        yield received
+    finally:
+        for signum, before in previous.items():
+            signal.signal(signum, before)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
@@ -356,14 +375,15 @@ def main(argv=None) -> int:
             parser.error("--lights replaces --gauge and --sphere; give one or the other")
         if args.light_intensities is not None and args.lights is None:
             parser.error("--light-intensities needs --lights")
-    previous = signal.signal(signal.SIGTERM, _terminate)
-    with warnings.catch_warnings(), _compile_notice(not getattr(args, "quiet", False)):
+    with (_signals_caught() as received, warnings.catch_warnings(),
+          _compile_notice(not getattr(args, "quiet", False))):
         warnings.simplefilter("always")  # the CLI prints every warning it meets
         warnings.showwarning = _show_warning
-        return _run(args, previous)
+        return _run(args, received)
 
 
-def _run(args, previous_sigterm) -> int:
+def _run(args, received: list[int]) -> int:
+    """Run the command; ``received`` lists the signals caught while it ran."""
     try:
         if args.command == "reconstruct":
             options = _options(args)
@@ -414,17 +434,18 @@ def _run(args, previous_sigterm) -> int:
                             relief=args.relief, cast_shadows=args.cast_shadows,
                             gloss=args.gloss, file_format=args.file_format)
             print(f"wrote a synthetic stack with ground truth to {args.out}/")
-    except ColorPSError as exc:
-        print(f"colorps: error: {exc}", file=sys.stderr)
-        return 1
-    except _Terminated:
-        print("colorps: terminated; no partial results were written", file=sys.stderr)
-        return 143
-    except KeyboardInterrupt:
-        print("colorps: interrupted; no partial results were written", file=sys.stderr)
-        return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous_sigterm)
+    except BaseException as exc:
+        # Whatever failed after a signal arrived failed because of it.
+        if isinstance(exc, KeyboardInterrupt) or (received and isinstance(exc, Exception)):
+            if isinstance(exc, _Terminated) or signal.SIGTERM in received:
+                print("colorps: terminated; no partial results were written", file=sys.stderr)
+                return 143
+            print("colorps: interrupted; no partial results were written", file=sys.stderr)
+            return 130
+        if isinstance(exc, ColorPSError):
+            print(f"colorps: error: {exc}", file=sys.stderr)
+            return 1
+        raise
     return 0
 
 

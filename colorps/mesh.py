@@ -8,6 +8,7 @@ import numpy as np
 
 from .errors import InputError, OutputError
 from .figures import as_rgb
+from .interrupts import interrupts_kept
 from .io import atomic_target, srgb_encode
 
 __all__ = ["height_mesh", "write_mesh", "MESH_FORMATS"]
@@ -35,8 +36,6 @@ def height_mesh(height, colours=None):
     -------
     trimesh.Trimesh
     """
-    import trimesh
-
     z = np.asarray(height, dtype=np.float64)
     if z.ndim != 2:
         raise InputError(f"height: expected an (H, W) map, got shape {z.shape}")
@@ -64,8 +63,11 @@ def height_mesh(height, colours=None):
     if colours is not None:
         col = as_rgb(np.asarray(colours, dtype=np.float64)[inside])
         vertex_colors = np.round(srgb_encode(col) * 255).astype(np.uint8)
-    return trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=vertex_colors,
-                           process=False)
+    with interrupts_kept():  # trimesh's "except BaseException" can swallow a Ctrl-C
+        import trimesh
+
+        return trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=vertex_colors,
+                               process=False)
 
 
 def write_mesh(mesh, path) -> Path:
@@ -74,8 +76,9 @@ def write_mesh(mesh, path) -> Path:
     kind = path.suffix.lower().lstrip(".")
     if kind not in MESH_FORMATS:
         raise InputError(f"{path}: mesh format must be one of {MESH_FORMATS}")
-    data = mesh.export(file_type=kind, **({"encoding": "binary"} if kind == "ply" else
-                                         {"include_color": True}))
+    with interrupts_kept():
+        data = mesh.export(file_type=kind, **({"encoding": "binary"} if kind == "ply" else
+                                             {"include_color": True}))
     try:
         with atomic_target(path) as tmp:
             tmp.write_bytes(data if isinstance(data, bytes) else data.encode())

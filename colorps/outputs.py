@@ -54,6 +54,7 @@ import numpy as np
 
 from .errors import OutputError
 from .figures import as_rgb, overview, shaded_relief
+from .interrupts import interrupts_kept
 from .io import file_mode, srgb_encode, write_image
 from .reasons import Reason, reason_picture
 from .reconstruct import Reconstruction
@@ -181,12 +182,13 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
         except OSError as exc:
             raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
         try:
-            for name, write in writers.items():
-                try:
-                    write(tmp / name)
-                except OSError as exc:
-                    raise OutputError(f"{out}: cannot write {name} "
-                                      f"({exc.strerror or exc})") from None
+            with interrupts_kept():  # the mesh writer (trimesh) can swallow a Ctrl-C
+                for name, write in writers.items():
+                    try:
+                        write(tmp / name)
+                    except OSError as exc:
+                        raise OutputError(f"{out}: cannot write {name} "
+                                          f"({exc.strerror or exc})") from None
             os.chmod(tmp, file_mode(directory=True))
             if not out.exists():
                 os.rename(tmp, out)

@@ -5,6 +5,7 @@ the one-line message naming the file, and the output folder's bytes before/after
 """
 
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -275,13 +276,14 @@ def test_sigterm_leaves_no_temporaries(tmp_path):
         codes.append(proc.returncode)
         hidden = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
         assert hidden == []
+        # 143: caught by colorps. -SIGTERM: Python's default, before colorps set
+        # its handler (importing) or after it restored it (exiting, results written).
+        assert proc.returncode in (0, 143, -signal.SIGTERM), (proc.returncode, err)
         if proc.returncode == 143:
-            assert "terminated" in err and not out.exists()
-        elif proc.returncode == 0:
-            import shutil
+            assert "terminated" in err and not out.exists(), err
+        elif out.exists():
+            assert (out / "report.json").exists() and (out / "normal.exr").exists(), err
             shutil.rmtree(out)
-        else:
-            assert proc.returncode == -signal.SIGTERM  # still importing
     assert 143 in codes, codes
 
 

@@ -272,6 +272,78 @@ def test_fuzz_cli_with_corrupt_stack(sample, tmp_path, capsys):
 
 
 # -------------------------------------------------------------------- Ctrl-C
+@pytest.fixture
+def sigint_raises():
+    """SIGINT raising KeyboardInterrupt, as in a terminal (a background job
+    starts with SIGINT ignored)."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def ctrl_c_swallowed(then=None):
+    """What trimesh's ``except BaseException`` does to a Ctrl-C mid-call."""
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(1)  # the handler raises here
+    except BaseException:
+        if then is not None:
+            raise then from None
+        return
+    raise AssertionError("SIGINT was not delivered")
+
+
+@pytest.mark.parametrize("then", [None, AttributeError("half-imported module")])
+def test_interrupts_kept_raises_a_swallowed_interrupt(sigint_raises, then):
+    from colorps.interrupts import interrupts_kept
+
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_kept():
+            ctrl_c_swallowed(then)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with interrupts_kept():  # nothing arrives: nothing happens
+        pass
+    with pytest.raises(ValueError, match="own"), interrupts_kept():
+        raise ValueError("its own error")
+
+
+def test_swallowed_interrupt_while_writing_leaves_nothing(sigint_raises, tmp_path):
+    from colorps.outputs import _write_folder
+
+    def swallowing_writer(path):
+        path.write_bytes(b"half")
+        ctrl_c_swallowed()
+
+    out = tmp_path / "new" / "out"
+    with pytest.raises(KeyboardInterrupt):
+        _write_folder(out, {"report.json": lambda p: p.write_text("{}"),
+                            "mesh.ply": swallowing_writer})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_error_after_an_interrupt_counts_as_the_interrupt(sample, tmp_path, monkeypatch,
+                                                          capsys, sigint_raises):
+    """A library mid-call can turn Ctrl-C into its own failure; the CLI must still
+    say it was interrupted (130), not report that failure as an error (1)."""
+    import colorps.cli as cli
+    from colorps.errors import OutputError
+
+    def interrupted_mid_call(*args, **kwargs):
+        ctrl_c_swallowed(then=OutputError("cannot write normal.exr (Interrupted system call)"))
+
+    monkeypatch.setattr(cli, "reconstruct_files", interrupted_mid_call)
+    assert main(cli_args(sample, tmp_path / "out")) == 130
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    assert "interrupted" in capsys.readouterr().err
+
+    def plain_error(*args, **kwargs):
+        raise OutputError("cannot write normal.exr (disk full)")
+
+    monkeypatch.setattr(cli, "reconstruct_files", plain_error)
+    assert main(cli_args(sample, tmp_path / "out")) == 1
+    assert "disk full" in capsys.readouterr().err
+
+
 def test_interrupted_run_leaves_no_partial_output(tmp_path):
     cmd, out = long_run_command(tmp_path)
     results = []
@@ -281,15 +353,16 @@ def test_interrupted_run_leaves_no_partial_output(tmp_path):
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
         results.append(proc.returncode)
-        # 130: caught by colorps; -SIGINT: arrived while Python was still importing.
-        if proc.returncode in (130, -signal.SIGINT):
-            if proc.returncode == 130:
-                assert "interrupted" in err
-            leftovers = list(out.iterdir()) if out.exists() else []
-            assert leftovers == [], leftovers
+        files = sorted(p.name for p in out.iterdir()) if out.exists() else []
+        # 130: caught by colorps. -SIGINT: Python's default handler, before colorps
+        # installed its own (importing) or after it restored it (exiting).
+        assert proc.returncode in (0, 130, -signal.SIGINT), (proc.returncode, err)
+        if proc.returncode == 130:
+            assert "interrupted" in err, err
+        if proc.returncode == 130 or (proc.returncode == -signal.SIGINT and not files):
+            assert files == [], (proc.returncode, err, files)
         else:  # finished before the signal: then everything is there
-            assert proc.returncode == 0
-            assert (out / "report.json").exists()
+            assert "report.json" in files and "normal.exr" in files, (proc.returncode, err)
             for p in out.iterdir():
                 p.unlink()
     assert 130 in results, f"colorps never caught the interrupt ({results}); make it longer"
