@@ -115,7 +115,8 @@ class Options:
         stays under this many GiB (:func:`colorps.tiles.rows_for_memory`);
         refuse the run when even the smallest tiles would not fit. "auto":
         ``AUTO_MEMORY_FRACTION`` of the memory available when the run starts
-        (:func:`colorps.tiles.memory_limit`), so a capture larger than the
+        (:func:`colorps.tiles.available_memory_bytes`: the system's, within a
+        container's or cluster job's cgroup limit), so a capture larger than the
         machine's memory runs in tiles instead of running out of it. None: no
         limit. Ignored when ``tile`` is given.
     brdf : {"fitted", "lambert"}

@@ -50,7 +50,8 @@ from .reconstruct import (LowSolvedWarning, Reconstruction, Timings, _median, _p
                           model_scale_pixels, reconstruct)
 
 __all__ = ["StackFiles", "tile_rows", "reconstruct_tiled", "rows_for_memory",
-           "memory_limit", "available_memory_bytes", "DEFAULT_TILE_ROWS"]
+           "memory_limit", "available_memory_bytes", "cgroup_available_bytes",
+           "DEFAULT_TILE_ROWS"]
 
 #: Rows per tile when none are given: about 64 MiB of float32 per tile for 8 RGB
 #: images of 4096 columns.
@@ -73,18 +74,31 @@ FINISH_BYTES = 110
 MIN_TILE_ROWS = 16
 
 
+#: Where Linux mounts the control groups whose memory limits a container or a
+#: cluster job (Docker, Kubernetes, SLURM) runs under; /proc/meminfo, which
+#: psutil reads, knows nothing of them.
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+#: A cgroup v1 memory limit at or above this many bytes means "no limit".
+CGROUP_UNLIMITED = 2 ** 60
+
+
 def available_memory_bytes() -> int:
     """Memory this process can use now, in bytes.
 
-    The system's available memory (``psutil.virtual_memory().available``:
-    free memory plus caches the system can drop), and inside a Dask worker no
-    more than the worker's own memory limit.
+    The least of: the system's available memory
+    (``psutil.virtual_memory().available``: free memory plus caches the system
+    can drop), what the control groups the process runs in leave it
+    (:func:`cgroup_available_bytes`: a container's or a cluster job's memory
+    limit), and inside a Dask worker the worker's own memory limit.
     """
     import sys
 
     import psutil
 
     available = psutil.virtual_memory().available
+    in_cgroup = cgroup_available_bytes()
+    if in_cgroup is not None:
+        available = min(available, in_cgroup)
     if "distributed" in sys.modules:  # only a process that uses Dask can be a worker
         from distributed import get_worker
 
@@ -95,6 +109,72 @@ def available_memory_bytes() -> int:
         if worker_limit:
             available = min(available, int(worker_limit))
     return int(available)
+
+
+def cgroup_available_bytes(root: Path = CGROUP_ROOT,
+                           membership: str | None = None) -> int | None:
+    """What the memory limits of this process's control groups leave it, in bytes.
+
+    For the process's cgroup and each of its ancestors that sets a memory
+    limit: the limit, less the memory charged to the group, plus the group's
+    inactive file cache (which the kernel reclaims before it kills). The least
+    of them; None where no group sets a limit, or on systems without cgroups.
+
+    Parameters
+    ----------
+    root : Path
+        Mount point of the cgroup file systems: cgroup v2 unified at ``root``,
+        v1's memory controller at ``root/memory``.
+    membership : str, optional
+        The text of ``/proc/self/cgroup`` (read from there when None).
+    """
+    try:
+        if membership is None:
+            membership = Path("/proc/self/cgroup").read_text()
+    except OSError:
+        return None
+    found = []
+    for line in membership.splitlines():
+        number, _, rest = line.partition(":")
+        controllers, _, group = rest.partition(":")
+        if number == "0" and controllers == "":  # cgroup v2
+            files = root, "memory.max", "memory.current", "inactive_file"
+        elif "memory" in controllers.split(","):  # cgroup v1
+            files = root / "memory", "memory.limit_in_bytes", "memory.usage_in_bytes", \
+                "total_inactive_file"
+        else:
+            continue
+        left = _cgroup_tree_available(*files, group.strip().lstrip("/"))
+        if left is not None:
+            found.append(left)
+    return min(found) if found else None
+
+
+def _cgroup_tree_available(mount: Path, limit_file: str, usage_file: str, inactive_key: str,
+                           group: str) -> int | None:
+    """The least memory left by the limits of ``group`` and its ancestors under
+    ``mount``. Inside a container the group path names the host's hierarchy,
+    which the container sees as its ``mount``: then the mount itself is read."""
+    folder = mount / group if group and (mount / group).is_dir() else mount
+    least = None
+    while True:
+        try:
+            text = (folder / limit_file).read_text().strip()
+            limit = None if text == "max" else int(text)
+            if limit is not None and limit < CGROUP_UNLIMITED:
+                usage = int((folder / usage_file).read_text())
+                inactive = 0
+                for row in (folder / "memory.stat").read_text().splitlines():
+                    key, _, value = row.partition(" ")
+                    if key == inactive_key:
+                        inactive = int(value)
+                left = max(limit - usage + inactive, 0)
+                least = left if least is None else min(least, left)
+        except (OSError, ValueError):
+            pass
+        if folder == mount or mount not in folder.parents:
+            return least
+        folder = folder.parent
 
 
 def memory_limit(setting: float | str | None) -> tuple[float | None, str]:
