@@ -117,7 +117,8 @@ def cgroup_available_bytes(root: Path = CGROUP_ROOT,
 
     For the process's cgroup and each of its ancestors that sets a memory
     limit: the limit, less the memory charged to the group, plus the group's
-    inactive file cache (which the kernel reclaims before it kills). The least
+    file cache other than shared memory (which the kernel reclaims before it
+    kills, and which psutil's figure counts as available too). The least
     of them; None where no group sets a limit, or on systems without cgroups.
 
     Parameters
@@ -138,10 +139,10 @@ def cgroup_available_bytes(root: Path = CGROUP_ROOT,
         number, _, rest = line.partition(":")
         controllers, _, group = rest.partition(":")
         if number == "0" and controllers == "":  # cgroup v2
-            files = root, "memory.max", "memory.current", "inactive_file"
+            files = root, "memory.max", "memory.current", ("file", "shmem")
         elif "memory" in controllers.split(","):  # cgroup v1
             files = root / "memory", "memory.limit_in_bytes", "memory.usage_in_bytes", \
-                "total_inactive_file"
+                ("total_cache", "total_shmem")
         else:
             continue
         left = _cgroup_tree_available(*files, group.strip().lstrip("/"))
@@ -150,8 +151,8 @@ def cgroup_available_bytes(root: Path = CGROUP_ROOT,
     return min(found) if found else None
 
 
-def _cgroup_tree_available(mount: Path, limit_file: str, usage_file: str, inactive_key: str,
-                           group: str) -> int | None:
+def _cgroup_tree_available(mount: Path, limit_file: str, usage_file: str,
+                           cache_keys: tuple[str, str], group: str) -> int | None:
     """The least memory left by the limits of ``group`` and its ancestors under
     ``mount``. Inside a container the group path names the host's hierarchy,
     which the container sees as its ``mount``: then the mount itself is read."""
@@ -163,12 +164,10 @@ def _cgroup_tree_available(mount: Path, limit_file: str, usage_file: str, inacti
             limit = None if text == "max" else int(text)
             if limit is not None and limit < CGROUP_UNLIMITED:
                 usage = int((folder / usage_file).read_text())
-                inactive = 0
-                for row in (folder / "memory.stat").read_text().splitlines():
-                    key, _, value = row.partition(" ")
-                    if key == inactive_key:
-                        inactive = int(value)
-                left = max(limit - usage + inactive, 0)
+                stat = dict(row.split(" ", 1) for row in
+                            (folder / "memory.stat").read_text().splitlines() if " " in row)
+                cache, shared = (int(stat.get(key, 0)) for key in cache_keys)
+                left = max(limit - usage + max(cache - shared, 0), 0)
                 least = left if least is None else min(least, left)
         except (OSError, ValueError):
             pass

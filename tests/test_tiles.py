@@ -306,23 +306,23 @@ def test_cgroup_limits_bound_the_available_memory(tmp_path, monkeypatch):
     v2 = tmp_path / "v2"
     _cgroup(v2, memory_max="max", memory_current=str(9 * gib), memory_stat="anon 1\n")
     _cgroup(v2 / "job_7", memory_max=str(4 * gib), memory_current=str(gib),
-            memory_stat=f"anon {gib}\ninactive_file {gib // 2}\nactive_file 5\n")
+            memory_stat=f"anon {gib}\nfile {gib // 2 + 5}\nshmem 5\n")
     _cgroup(v2 / "job_7" / "step_0", memory_max="max", memory_current=str(gib),
-            memory_stat="inactive_file 0\n")
+            memory_stat="file 0\n")
     assert cgroup_available_bytes(v2, "0::/job_7/step_0\n") == 3.5 * gib
     # v1 (memory controller in its own hierarchy); the root's "unlimited" is no limit.
     v1 = tmp_path / "v1"
     _cgroup(v1 / "memory", memory_limit_in_bytes="9223372036854771712",
-            memory_usage_in_bytes=str(gib), memory_stat="total_inactive_file 0\n")
+            memory_usage_in_bytes=str(gib), memory_stat="total_cache 0\n")
     _cgroup(v1 / "memory" / "docker" / "abc", memory_limit_in_bytes=str(2 * gib),
             memory_usage_in_bytes=str(3 * gib // 2),
-            memory_stat=f"inactive_file 9\ntotal_inactive_file {gib // 4}\n")
+            memory_stat=f"cache 9\ntotal_cache {gib // 2}\ntotal_shmem {gib // 4}\n")
     membership = "9:pids:/docker/abc\n4:memory:/docker/abc\n1:cpu:/\n"
     assert cgroup_available_bytes(v1, membership) == 0.75 * gib
     # Inside the container the host's path is not there: its own root is the group.
     inside = tmp_path / "inside"
     _cgroup(inside, memory_max=str(gib), memory_current=str(gib // 4),
-            memory_stat="inactive_file 0\n")
+            memory_stat="file 0\n")
     assert cgroup_available_bytes(inside, "0::/docker/abc\n") == 0.75 * gib
     # No limit anywhere, no cgroup files, unreadable values: no cgroup figure.
     assert cgroup_available_bytes(v2, "0::/\n") is None
