@@ -50,7 +50,7 @@ def interrupts_kept():
         return handler
 
     watched = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    watched = {signum: h for signum, h in watched.items() if callable(h)}
+    watched = {signum: handler for signum, handler in watched.items() if callable(handler)}
     for signum, previous in watched.items():
         signal.signal(signum, recording(previous))
     try:
