@@ -43,6 +43,12 @@ _MAX_CODE = {"uint8": 255, "int8": 127, "uint16": 65535, "int16": 32767,
              "uint32": 4294967295, "int32": 2147483647}
 #: Dark level of integer files, in codes of the file's pixel type.
 DARK_CODES = 2.0
+#: File name suffixes of camera raw formats, which colorps does not decode
+#: (demosaicing and white balance are a raw converter's job): such a file is
+#: refused with advice on converting it to a linear TIFF.
+CAMERA_RAW_SUFFIXES = frozenset(
+    ".3fr .arw .cr2 .cr3 .crw .dcr .dng .erf .fff .iiq .k25 .kdc .mef .mos .mrw .nef "
+    ".nrw .orf .pef .raf .raw .rw2 .rwl .sr2 .srf .srw .x3f".split())
 
 
 class LossyInputWarning(UserWarning):
@@ -57,6 +63,12 @@ def _open_input(path: Path):
         raise ImageReadError(f"{path}: is a directory, not an image")
     if not path.exists():
         raise ImageReadError(f"{path}: no such file")
+    if path.suffix.lower() in CAMERA_RAW_SUFFIXES:  # (many are TIFF inside: a TIFF
+        # reader would return their thumbnail or undemosaiced sensor data)
+        raise ImageReadError(
+            f"{path}: camera raw files are not read; convert them to linear 16-bit "
+            "TIFF (dcraw -4 -T, or darktable / RawTherapee with a linear profile and "
+            "no tone curve), the same way for scene and gauge, and pass --encoding linear")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise ImageReadError(f"{path}: cannot read image ({oiio.geterror().strip()})")

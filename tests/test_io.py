@@ -100,6 +100,12 @@ def test_unreadable_files(tmp_path):
     with pytest.raises(ImageReadError, match="junk.png"):
         read_image(junk)
     good = write_image(tmp_path / "good.exr", np.ones((64, 64, 3)))
+    # Camera raw: refused with what to do, even when it is a readable TIFF inside.
+    raw = tmp_path / "shot_01.NEF"
+    raw.write_bytes(write_image(tmp_path / "t.tif", np.ones((8, 8, 3)), dtype="uint16")
+                    .read_bytes())
+    with pytest.raises(ImageReadError, match=r"shot_01.NEF: camera raw .*--encoding linear"):
+        read_image(raw)
     cut = tmp_path / "cut.exr"
     cut.write_bytes(good.read_bytes()[:300])
     with pytest.raises(ImageReadError, match="cut.exr"):
