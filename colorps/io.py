@@ -22,7 +22,7 @@ import glob
 import os
 import tempfile
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Sequence
 
@@ -34,7 +34,7 @@ from .options import FLOAT_DARK_LEVEL
 __all__ = ["read_image", "read_stack", "read_mask", "read_info", "ImageInfo",
            "check_stack_files", "check_decoded_size", "write_image", "expand_paths",
            "file_mode", "srgb_decode", "srgb_encode", "input_levels", "noise_base",
-           "LossyInputWarning", "Encoding"]
+           "LossyInputWarning", "ExposureWarning", "relative_exposures", "Encoding"]
 
 #: How stored pixel values map to linear light.
 Encoding = Literal["auto", "linear", "srgb"]
@@ -53,6 +53,16 @@ CAMERA_RAW_SUFFIXES = frozenset(
 
 class LossyInputWarning(UserWarning):
     """An input uses lossy compression (JPEG): results will be noisier."""
+
+
+class ExposureWarning(UserWarning):
+    """Scene and gauge images were exposed differently (their EXIF says so)."""
+
+
+#: Header attributes of a photo's exposure (OpenImageIO's names of the EXIF
+#: tags) and what colorps calls them: seconds, f-number, ISO sensitivity.
+EXPOSURE_ATTRIBUTES = {"ExposureTime": "time", "FNumber": "f_number",
+                       "Exif:PhotographicSensitivity": "iso", "Exif:ISOSpeedRatings": "iso"}
 
 
 def _open_input(path: Path):
@@ -109,6 +119,9 @@ class ImageInfo:
         Size in pixels; channels without alpha.
     pixel_type : str
         OpenImageIO's name of the stored type ("uint8", "uint16", "half", "float", ...).
+    exposure : dict
+        The exposure settings the header records (EXIF): any of "time"
+        (seconds), "f_number" and "iso"; empty for most EXR and for converted files.
     """
 
     path: Path
@@ -116,6 +129,7 @@ class ImageInfo:
     height: int
     channels: int
     pixel_type: str
+    exposure: dict = field(default_factory=dict, compare=False)
 
     @property
     def decoded_bytes(self) -> int:
@@ -130,8 +144,13 @@ def read_info(path) -> ImageInfo:
     try:
         spec = inp.spec()
         alpha = 1 if spec.alpha_channel >= 0 else 0
+        exposure = {}
+        for attribute, key in EXPOSURE_ATTRIBUTES.items():
+            value = spec.getattribute(attribute)
+            if isinstance(value, (int, float)) and np.isfinite(value) and value > 0:
+                exposure.setdefault(key, float(value))
         return ImageInfo(path, int(spec.width), int(spec.height),
-                         int(spec.nchannels) - alpha, str(spec.format))
+                         int(spec.nchannels) - alpha, str(spec.format), exposure)
     finally:
         inp.close()
 
@@ -171,6 +190,38 @@ def check_stack_files(paths: Sequence, *, name: str = "stack",
     if max_bytes is not None:
         check_decoded_size(infos, max_bytes, name=name)
     return infos
+
+
+def relative_exposures(scene: Sequence[ImageInfo],
+                       gauge: Sequence[ImageInfo]) -> np.ndarray | None:
+    """Each scene image's exposure over its gauge image's, from their headers.
+
+    A linear pixel value grows as exposure time x ISO / f-number²; each pair
+    is compared on the settings both of its headers record.
+
+    Returns
+    -------
+    (m,) ndarray or None
+        The ratios; None unless every pair records its exposure time.
+
+    Examples
+    --------
+    >>> info = lambda **exposure: ImageInfo(Path("x.jpg"), 8, 8, 3, "uint8", exposure)
+    >>> relative_exposures([info(time=1 / 60, f_number=8.0), info(time=1 / 125, iso=200)],
+    ...                    [info(time=1 / 125, f_number=8.0), info(time=1 / 125)]).tolist()
+    [2.0833333333333335, 1.0]
+    """
+    ratios = []
+    for s, g in zip(scene, gauge):
+        if "time" not in s.exposure or "time" not in g.exposure:
+            return None
+        ratio = s.exposure["time"] / g.exposure["time"]
+        if "iso" in s.exposure and "iso" in g.exposure:
+            ratio *= s.exposure["iso"] / g.exposure["iso"]
+        if "f_number" in s.exposure and "f_number" in g.exposure:
+            ratio *= (g.exposure["f_number"] / s.exposure["f_number"]) ** 2
+        ratios.append(ratio)
+    return np.array(ratios) if ratios else None
 
 
 def check_decoded_size(infos: Sequence[ImageInfo], max_bytes: float, *,

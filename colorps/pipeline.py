@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, Sequence
 
@@ -30,6 +31,10 @@ UNIT_TOLERANCE = 0.01
 MAX_NON_UNIT_FRACTION = 0.01
 #: Seconds to wait for a Dask scheduler given by address.
 SCHEDULER_TIMEOUT = 10
+#: Scene and gauge exposures (EXIF) that differ by more than this fraction,
+#: between lights or overall, are warned about (nominal shutter speeds alike
+#: compare exactly; a third of a stop is 26 %).
+EXPOSURE_TOLERANCE = 0.02
 
 
 def reconstruct_files(scene_patterns: str | Sequence[str],
@@ -130,6 +135,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
             raise InputError(f"a tiled run ({why_tiled}) with --lights needs "
                              "--brdf lambert: the finish of a virtual-gauge run is fitted to "
                              "the whole scene at once")
+    exposures = None
     if lights is not None:
         light_set = read_lights(lights, light_intensities, images=len(scene_paths))
         gauge_paths = []
@@ -138,7 +144,9 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         if len(scene_paths) != len(gauge_paths):
             raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
                              f"{len(gauge_paths)}; they are paired in order")
-        gauge_info = check_stack_files(gauge_paths, name="gauge", max_bytes=limit)[0]
+        gauge_infos = check_stack_files(gauge_paths, name="gauge", max_bytes=limit)
+        gauge_info = gauge_infos[0]
+        exposures = _check_exposures(scene_infos, gauge_infos)
         if gauge_info.channels != scene_info.channels:
             raise InputError(f"{gauge_paths[0]}: has {gauge_info.channels} channel(s) but "
                              f"{scene_paths[0]} has {scene_info.channels}")
@@ -233,6 +241,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
         mask=None if mask_path is None else str(mask_path), channels=names,
         options=options.as_dict(), memory_limit_gib_used=limit_gib,
         tiled_because=why_tiled,
+        exposure_scene_over_gauge=None if exposures is None else exposures.tolist(),
         gauge_levels=dict(clip_level=gauge_levels.clip_level,
                           dark_level=gauge_levels.dark_level),
     )
@@ -245,6 +254,30 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
                             report=report, mesh=options.mesh_kinds, overwrite=overwrite,
                             finished=finished, exr_tile=TILED_EXR_SIDE if tiled else None)
     return result if finished is None else finished.result()
+
+
+def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
+    """Warn when the headers say scene and gauge were exposed differently;
+    return each scene image's exposure over its gauge image's (or None)."""
+    from .io import ExposureWarning, relative_exposures
+
+    ratios = relative_exposures(scene_infos, gauge_infos)
+    if ratios is None:
+        return None
+    shown = ", ".join(f"{r:.3g}" for r in ratios)
+    if ratios.max() > ratios.min() * (1 + EXPOSURE_TOLERANCE):
+        k = int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
+        warnings.warn(f"{scene_infos[k].path}: scene and gauge were exposed differently "
+                      f"under different lights (scene / gauge exposure per image, from "
+                      f"EXIF: {shown}); each light's scene and gauge photos need the same "
+                      "exposure, or the normals are biased", ExposureWarning, stacklevel=3)
+    elif abs(np.log(np.median(ratios))) > np.log1p(EXPOSURE_TOLERANCE):
+        factor = float(np.median(ratios))
+        warnings.warn(f"{scene_infos[0].path}: the scene was exposed {factor:.3g}x the gauge "
+                      f"(EXIF); the albedo, relative to the gauge's, comes out multiplied by "
+                      f"{factor:.3g}: divide it, or photograph both alike", ExposureWarning,
+                      stacklevel=3)
+    return ratios
 
 
 @contextlib.contextmanager

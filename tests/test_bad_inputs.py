@@ -4,6 +4,7 @@ Each case runs the CLI (``main([...])`` or a subprocess) and checks the exit cod
 the one-line message naming the file, and the output folder's bytes before/after.
 """
 
+import json
 import os
 import shutil
 import signal
@@ -338,3 +339,53 @@ class _no_warnings:
     def __exit__(self, *exc):
         self._catch.__exit__(*exc)
         assert not self.caught, [str(w.message) for w in self.caught]
+
+
+def copy_with_exposure(src, dst, time, f_number=8.0, scale=1.0):
+    """An image as a camera would have saved it: its EXIF exposure in the header
+    (and, with ``scale``, pixels as bright as that exposure makes them)."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(src))
+    if scale != 1.0:
+        buf = oiio.ImageBufAlgo.mul(buf, scale)
+    buf.specmod().attribute("ExposureTime", float(time))
+    buf.specmod().attribute("FNumber", float(f_number))
+    assert buf.write(str(dst), "half"), buf.geterror()
+
+
+def test_exposures_of_scene_and_gauge_are_checked(capture, tmp_path, capsys):
+    """EXIF exposures that differ between a light's scene and gauge photos bias the
+    normals, and a uniform difference scales the albedo: both are said, with numbers."""
+    folder, info = capture
+
+    def run(name, scene_times, gauge_times, scale=1.0):
+        data = tmp_path / name
+        data.mkdir()
+        for k, (ts, tg) in enumerate(zip(scene_times, gauge_times)):
+            copy_with_exposure(folder / f"scene_{k:02d}.exr", data / f"scene_{k:02d}.exr", ts,
+                               scale=scale)
+            copy_with_exposure(folder / f"gauge_{k:02d}.exr", data / f"gauge_{k:02d}.exr", tg)
+        out = tmp_path / f"out_{name}"
+        assert main(args_for(capture, out, str(data / "scene_*.exr"),
+                             str(data / "gauge_*.exr"), "--no-height")) == 0
+        report = json.loads((out / "report.json").read_text())
+        return report["exposure_scene_over_gauge"], capsys.readouterr().err, out
+
+    same = [1 / 125] * 4
+    ratios, err, alike = run("alike", same, same)
+    assert ratios == [1.0] * 4 and "exposed" not in err
+    ratios, err, _ = run("one_light", same, [1 / 125, 1 / 125, 1 / 60, 1 / 125])
+    assert ratios[2] == pytest.approx(60 / 125) and ratios[0] == 1.0
+    assert "warning" in err and "scene_02.exr" in err and "different lights" in err
+    # The whole scene exposed 2x: its pixels 2x brighter, and the albedo with them.
+    ratios, err, twice = run("twice", [2 / 125] * 4, same, scale=2.0)
+    assert ratios == pytest.approx([2.0] * 4)
+    assert "exposed 2x the gauge" in err and "multiplied by 2" in err
+    base, _ = read_image(alike / "albedo.exr")
+    doubled, _ = read_image(twice / "albedo.exr")
+    assert np.nanmedian(doubled / base) == pytest.approx(2.0, rel=0.01)
+    # No EXIF (synthetic EXR): nothing to compare.
+    assert main(args_for(capture, tmp_path / "plain", None, None, "--no-height")) == 0
+    report = json.loads((tmp_path / "plain" / "report.json").read_text())
+    assert report["exposure_scene_over_gauge"] is None
