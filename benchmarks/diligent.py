@@ -27,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from colorps import Options, angular_error  # noqa: E402
+from colorps.inputs import CaptureFiles  # noqa: E402
 from colorps.pipeline import reconstruct_files  # noqa: E402
 
 
@@ -47,10 +48,11 @@ def main(argv=None) -> int:
     truth = loadmat(folder / "Normal_gt.mat")["Normal_gt"].astype(np.float64)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
+        inputs = CaptureFiles([str(folder / n) for n in names], mask=folder / "mask.png",
+                              lights=folder / "light_directions.txt",
+                              light_intensities=folder / "light_intensities.txt")
         result = reconstruct_files(
-            [str(folder / n) for n in names], None, None, Path(tmp) / "out",
-            mask_path=folder / "mask.png", lights=folder / "light_directions.txt",
-            light_intensities=folder / "light_intensities.txt",
+            inputs, Path(tmp) / "out",
             options=Options(mode=args.mode, refine=args.refine, encoding="linear", brdf=args.brdf,
                             height=False, light_subsets=args.light_subsets,
                             max_residual=None if args.keep_all else Options().max_residual),

@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from colorps import BucketGrid, compute_signatures, synth  # noqa: E402
-from colorps.reconstruct import _tile_order  # noqa: E402
+from colorps.matching import _tile_order  # noqa: E402
 
 
 def reference_package(rev: str, folder: Path):

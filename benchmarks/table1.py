@@ -67,10 +67,10 @@ def make_case(theta: int, m: int, colour: bool, sigma: float, outliers: float,
     """Gauge table, scene queries row by row, and the pipeline's order of them.
 
     ``queries[tiles]`` are the same queries in the order colorps's pipeline
-    looks them up (32 x 32 pixel tiles, see ``colorps.reconstruct._tile_order``).
+    looks them up (32 x 32 pixel tiles, see ``colorps.matching._tile_order``).
     """
     from colorps import compute_signatures, synth
-    from colorps.reconstruct import _tile_order
+    from colorps.matching import _tile_order
 
     bands = 3 if colour else 1
     lights = synth.ring_lights(m, theta, light_colours(m) if colour else None, bands=bands)

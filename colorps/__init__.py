@@ -6,19 +6,29 @@ y up, z towards the camera; all arithmetic on linear pixel values.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .errors import ColorPSError, GaugeError, ImageReadError, InputError, OutputError
 from . import light_masks, synth
-from .brdf import BRDF, fit_scene_brdf
+from .brdf import BRDF
+from .errors import (
+    ColorPSError,
+    ColorPSWarning,
+    GaugeError,
+    ImageReadError,
+    InputError,
+    OutputError,
+)
 from .gauge import Gauge, find_sphere
 from .geometry import angular_error, sphere_normals
 from .grid import BucketGrid, QueryStats
 from .integrate import integrate, weights_from_quality
 from .lights import Lights, read_lights, write_lights
-from .matching import GaugeTables
 from .options import Options
 from .reasons import Reason
-from .reconstruct import Reconstruction, ReconstructionStats, reconstruct
+from .reconstruct import reconstruct
+from .resolve import Resolved, StackModel, resolve
+from .results import Reconstruction, ReconstructionStats
 from .signatures import SignatureSet, compute_signatures, luminance
+from .tables import GaugeTables
+from .virtual import fit_scene_brdf
 
 try:
     __version__ = version("colorps")
@@ -26,11 +36,38 @@ except PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0+unknown"
 
 __all__ = [
-    "reconstruct", "Options", "Reconstruction", "ReconstructionStats", "Reason",
-    "Gauge", "find_sphere", "BRDF", "fit_scene_brdf", "light_masks", "Lights", "read_lights",
-    "write_lights", "BucketGrid", "QueryStats", "GaugeTables",
-    "SignatureSet", "compute_signatures", "luminance",
-    "integrate", "weights_from_quality", "angular_error", "sphere_normals", "synth",
-    "ColorPSError", "GaugeError", "ImageReadError", "InputError", "OutputError",
+    "BRDF",
+    "BucketGrid",
+    "ColorPSError",
+    "ColorPSWarning",
+    "Gauge",
+    "GaugeError",
+    "GaugeTables",
+    "ImageReadError",
+    "InputError",
+    "Lights",
+    "Options",
+    "OutputError",
+    "QueryStats",
+    "Reason",
+    "Reconstruction",
+    "ReconstructionStats",
+    "Resolved",
+    "SignatureSet",
+    "StackModel",
     "__version__",
+    "angular_error",
+    "compute_signatures",
+    "find_sphere",
+    "fit_scene_brdf",
+    "integrate",
+    "light_masks",
+    "luminance",
+    "read_lights",
+    "reconstruct",
+    "resolve",
+    "sphere_normals",
+    "synth",
+    "weights_from_quality",
+    "write_lights",
 ]

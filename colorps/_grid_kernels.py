@@ -42,6 +42,8 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from ._config import FASTMATH
+
 # ---------------------------------------------------------------- tuning
 #: Relative and absolute margins of every pruning test (float32 rounding of
 #: distances is far below them).
@@ -59,10 +61,6 @@ LARGE_BUCKET = 32
 #: cells away (sigma = 0.02: 0.55-0.73x; sigma = 0.005 unchanged, measured).
 SWITCH_CELLS = 4.0
 SWITCH_AFTER = 25
-#: Reassociation lets LLVM vectorise the dot products; its rounding changes are
-#: orders of magnitude below the pruning margins. No flags that assume finite
-#: values: inputs are checked, but inf is used as "no entry yet".
-FASTMATH = {"reassoc", "contract"}
 #: Up to this signature dimension a full distance costs no more than any bucket
 #: test, so phase 1 tests whole runs of cells without looking at their buckets.
 #: Above it, entries (and queries, in a scratch row) are zero-padded to whole
@@ -136,7 +134,7 @@ Position = namedtuple("Position", "u v h r2 norm2")
 
 _VECTOR = ir.VectorType(ir.FloatType(), LANES)
 # As the kernels' fastmath: sums may be reassociated, never assumed finite.
-_FLAGS = ("reassoc", "contract")
+_FLAGS = tuple(sorted(FASTMATH))
 
 
 def _is_float32_c(array_type, ndim: int) -> bool:

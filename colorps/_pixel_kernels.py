@@ -300,25 +300,23 @@ def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2,
-                    gauge_var, resolution, read2, gain, pixel_kind, levels, table, floor2,
-                    residual, distance):
+def group_residuals(scene_ov, group, gauge, noise, floor2, residual, distance):
     """Residual and signature distance of each pixel's match (colorps.residuals).
 
     Parameters
     ----------
-    scene_ov, ys, xs, bands, lights
-        As for group_queries.
-    rows : (P,) int64
-        Each pixel's gauge match (flat gauge pixel index).
-    gauge_ov : (Hg, Wg, B, m) float32
-        The gauge's OVs (its unit signatures over ``lights`` are these divided
-        by sqrt(gauge_norm2)).
-    gauge_norm2, gauge_var, resolution : (Hg * Wg, B)
-        Squared OV norms and mean measurement variances over ``lights``, and
-        h^2, of the gauge.
-    read2, gain, pixel_kind, levels, table
-        The scene's noise model (see mean_variance).
+    scene_ov : (H, W, B, m) float32
+    group : colorps.residuals.MatchedGroup
+        ys, xs, bands, lights as for group_queries; rows (P,) int64, each
+        pixel's gauge match (flat gauge pixel index).
+    gauge : colorps.residuals.GaugeOverLights
+        ov (Hg, Wg, B, m) float32, the gauge's OVs (its unit signatures over
+        ``lights`` are these divided by sqrt(norm2)); norm2, variance and
+        resolution (Hg * Wg, B): squared OV norms and mean measurement
+        variances over ``lights``, and h^2, of the gauge.
+    noise : tuple
+        The scene's noise model (read2, gain, pixel_kind, levels, table; see
+        mean_variance).
     floor2 : float
         MODEL_FLOOR^2.
 
@@ -329,6 +327,9 @@ def group_residuals(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2
     distance : (P,) float32
         sqrt(mean over bands of d_k): the plain signature distance per band.
     """
+    ys, xs, bands, lights, rows = group
+    gauge_ov, gauge_norm2, gauge_var, resolution = gauge
+    read2, gain, pixel_kind, levels, table = noise
     n_lights, n_bands = lights.size, bands.size
     width = gauge_ov.shape[1]
     for p in prange(ys.size):

@@ -17,11 +17,14 @@ offset's covariance (J^T W J)^-1 and, through the normal's derivatives, the
 angular uncertainty.
 """
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit, prange
 
 # numba's cache watches only this file: after editing _pixel_kernels._variance,
 # touch this one too (or clear its __pycache__), or the refinement keeps the old one.
+from ._config import FASTMATH
 from ._pixel_kernels import _variance
 
 # ---------------------------------------------------------------- tuning
@@ -42,7 +45,25 @@ DAMPING = 1e-9
 MAX_MOVES = 3
 #: Pixels handed to a thread at a time (scratch allocated once per chunk).
 PIXEL_CHUNK = 256
-FASTMATH = {"reassoc", "contract"}
+
+
+# ---------------------------------------------------------------- data layout
+#: The gauge as the fit sees it: coef (Hg, Wg, B * M, 6) and ncoef (Hg, Wg, 3, 6),
+#: the quadratic model of every gauge measurement and normal component around
+#: each gauge pixel (:func:`colorps.refine.quadratic_models`); window (Hg, Wg),
+#: 0 where a gauge pixel has no usable neighbourhood; ov (Hg, Wg, B, M) its OVs.
+GaugeModel = namedtuple("GaugeModel", "coef ncoef window ov")
+#: The pixels to refine: scene OVs ov (H, W, B, M); pixel p is (y[p], x[p]),
+#: matched to gauge pixel (qy[p], qx[p]), with bands[p] (bit k: band used) and
+#: dropped[p] (light masks, (P, words) uint64).
+Pixels = namedtuple("Pixels", "ov y x qy qx bands dropped")
+#: The scene's (row 0) and gauge's (row 1) noise: noise (2, 3) (read^2, gain,
+#: pixel kind), levels (Q,) and table (2, Q) (:func:`colorps._pixel_kernels._variance`).
+NoiseTables = namedtuple("NoiseTables", "noise levels table")
+#: Outputs, one per pixel: the gauge pixel the fit ended at (y, x) and the
+#: offset (u, v) from it, the unit normal (P, 3), the normal's angular variance
+#: cov (radians^2), and ok, whether it was refined.
+Refined = namedtuple("Refined", "y x u v normal cov ok")
 
 
 def quadratic_fit_matrix(half: int) -> np.ndarray:
@@ -204,23 +225,18 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, ou
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def refine(coef, ncoef, window, scene_ov, gauge_ov, py, px, qy, qx, bands, dropped, noise,
-           levels, table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok):
-    """Refine every pixel p (``prange`` over chunks); see the module docstring.
+def refine(gauge, pixels, noise_tables, out):
+    """Refine every pixel (``prange`` over chunks); see the module docstring.
 
-    coef (Hg, Wg, B * M, 6) and ncoef (Hg, Wg, 3, 6) hold the quadratic model
-    of every gauge measurement and normal component around gauge pixels
-    (:func:`colorps.refine.quadratic_models`); window (Hg, Wg) is 0 where a
-    gauge pixel has no usable neighbourhood. scene_ov (H, W, B, M) and
-    gauge_ov (Hg, Wg, B, M) are the observation vectors; pixel p is (py, px),
-    matched to gauge pixel (qy, qx), with bands (bit k: band used) and dropped
-    (light masks, (P, words) uint64). noise (2, 3) (read^2, gain, pixel kind), levels
-    (Q,) and table (2, Q) describe the scene's (row 0) and gauge's (row 1) noise
-    (:func:`colorps._pixel_kernels._variance`). Outputs: the gauge
-    pixel the fit ended at (out_y, out_x) and the offset (u, v) from it, the
-    unit normal, the normal's angular variance (radians^2), and whether it was
-    refined.
+    ``gauge`` is a :data:`GaugeModel`, ``pixels`` the :data:`Pixels` to refine,
+    ``noise_tables`` the :data:`NoiseTables` of both stacks; the results are
+    written into ``out``, a :data:`Refined` of preallocated arrays (y and x
+    start as qy and qx).
     """
+    coef, ncoef, window, gauge_ov = gauge
+    scene_ov, py, px, qy, qx, bands, dropped = pixels
+    noise, levels, table = noise_tables
+    out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok = out
     n = py.shape[0]
     n_bands, n_lights = scene_ov.shape[2], scene_ov.shape[3]
     n_chunks = (n + PIXEL_CHUNK - 1) // PIXEL_CHUNK

@@ -34,16 +34,24 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Sequence
 
 from .errors import ColorPSError, InputError, OutputError
-from .gauge import DEFAULT_ALBEDO
+from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
+from .inputs import CaptureFiles
 from .options import Options
 
-__all__ = ["CaptureSpec", "CaptureOutcome", "find_capture", "read_manifest", "run_batch",
-           "IMAGE_SUFFIXES", "LIGHT_FILES"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "LIGHT_FILES",
+    "CaptureOutcome",
+    "CaptureSpec",
+    "find_capture",
+    "read_manifest",
+    "run_batch",
+]
 
 #: Image files a capture folder's ``scene_*`` and ``gauge_*`` may be.
 IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".png", ".jpg", ".jpeg")
@@ -77,7 +85,7 @@ class CaptureSpec:
     lights: str | None = None
     light_intensities: str | None = None
     gauge_albedo: object = DEFAULT_ALBEDO
-    virtual_radius: float = 100.0
+    virtual_radius: float = DEFAULT_VIRTUAL_RADIUS
 
     def __post_init__(self) -> None:
         if not self.name or "/" in self.name or self.name in (".", ".."):
@@ -86,6 +94,13 @@ class CaptureSpec:
             raise InputError(f"capture {self.name}: give either gauge images or a light file")
         if self.gauge is not None and self.sphere is None:
             object.__setattr__(self, "sphere", "auto")
+
+    @property
+    def files(self) -> CaptureFiles:
+        """The inputs, as :func:`colorps.pipeline.reconstruct_files` takes them."""
+        return CaptureFiles(self.scene, gauge=self.gauge, sphere=self.sphere, mask=self.mask,
+                            lights=self.lights, light_intensities=self.light_intensities,
+                            gauge_albedo=self.gauge_albedo, virtual_radius=self.virtual_radius)
 
 
 @dataclass(frozen=True)
@@ -224,11 +239,8 @@ def run_one(spec: CaptureSpec, out, options: Options, overwrite: bool = False
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
         try:
-            result = reconstruct_files(
-                spec.scene, spec.gauge, spec.sphere, target, gauge_albedo=spec.gauge_albedo,
-                mask_path=spec.mask, options=options, lights=spec.lights,
-                light_intensities=spec.light_intensities,
-                virtual_radius=spec.virtual_radius, overwrite=overwrite, progress=False)
+            result = reconstruct_files(spec.files, target, options=options,
+                                       overwrite=overwrite, progress=False)
         except ColorPSError as exc:
             return CaptureOutcome(spec.name, str(target), False, str(exc),
                                   seconds=time.perf_counter() - t0)

@@ -16,7 +16,7 @@ Lambert, real matte and plastic finishes are darker at grazing incidence. The
 second term is a normalised Blinn-Phong highlight of strength s_b per band.
 
 :func:`fit_brdf` fits g, s and shininess to a scene's observations at given
-normals (an initial estimate from a Lambertian gauge, then from the fitted
+normals (:func:`colorps.virtual.fit_scene_brdf` finds those normals) (an initial estimate from a Lambertian gauge, then from the fitted
 one): alternating least squares between the per-pixel albedos and the shared,
 non-negative parameters, on relative residuals with robust (Huber) weights so
 that cast shadows and interreflections do not pull the fit, over a grid of
@@ -31,19 +31,9 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["BRDF", "fit_brdf", "fit_scene_brdf", "DIFFUSE_KNOTS"]
+__all__ = ["BRDF", "DIFFUSE_KNOTS", "fit_brdf"]
 
 # ---------------------------------------------------------------- tuning
-#: fit_scene_brdf fits this many times: at the normals of a Lambertian gauge,
-#: then at those of the previous fit (on DiLiGenT Ball the mean error went
-#: 2.71, 1.96, 1.37, 1.35 degrees after 0, 1, 2, 3 fits).
-SCENE_FITS = 2
-#: Fewer images than this leave too few measurements per pixel to tell a
-#: finish from tilted normals: the scene is taken as Lambertian.
-MIN_FIT_IMAGES = 6
-#: A fit that matches no better than Lambert is not kept (the report says so);
-#: one that matches more than WORSE_FIT worse is also warned about.
-WORSE_FIT = 0.02
 #: Cosines of incidence at which the diffuse falloff g is a free value (linear
 #: in between; g(1) = 1 fixes the scale the albedo carries).
 DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
@@ -52,8 +42,6 @@ DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 #: around the best; each joint round (below) tries the best and its neighbours.
 SHININESS_GRID = tuple(float(v) for v in np.geomspace(4.0, 10000.0, 10))
 SHININESS_STEPS = 2
-#: Pixels of the scene the fit uses (a fixed random sample of the solved ones).
-FIT_PIXELS = 2500
 #: Observations whose cosine of incidence at the estimated normal is below this
 #: are left out: attached-shadow boundaries are where normal errors matter most.
 MIN_FIT_COSINE = 0.02
@@ -118,7 +106,7 @@ class BRDF:
         object.__setattr__(self, "shininess", float(self.shininess))
 
     @classmethod
-    def lambert(cls) -> "BRDF":
+    def lambert(cls) -> BRDF:
         """The Lambertian finish (g = 1, no highlight)."""
         return cls()
 
@@ -164,103 +152,6 @@ class BRDF:
                     shininess=self.shininess)
 
 
-def fit_scene_brdf(scene, lights, options=None, *, mask=None, noise=None,
-                   radius: float = 100.0, fits: int = SCENE_FITS,
-                   progress: bool = False) -> tuple[BRDF, list[dict]]:
-    """Fit the scene's finish from its own images, for a virtual gauge.
-
-    Starting from a Lambertian virtual gauge, the scene is matched (light
-    subsets off and nothing refused: a quick, complete estimate), a
-    :class:`BRDF` is fitted (:func:`fit_brdf`) to FIT_PIXELS of its solved
-    pixels at their estimated normals, the gauge is rendered with it, and the
-    scene matched again; ``fits`` times in all. The fit is kept only when the
-    scene matches the gauge rendered with it better (lower median residual)
-    than the Lambertian one (the last round's ``kept``); otherwise the result is
-    Lambert, as it is with fewer than MIN_FIT_IMAGES images (with a warning).
-
-    Parameters
-    ----------
-    scene : (m, H, W, c) array_like
-        Linear scene images.
-    lights : Lights
-        The calibrated lights, one per image.
-    options : Options, optional
-        The run's settings, with numbers for ``read_noise`` and ``gain`` (a
-        rendered gauge has no noise to fit them to).
-    mask, noise : optional
-        As for :func:`colorps.reconstruct`.
-    radius : float, optional
-        Radius (pixels) of the rendered gauge sphere.
-    fits : int, optional
-        Rounds of matching and fitting.
-    progress : bool, optional
-        Say each round's result on stderr.
-
-    Returns
-    -------
-    (BRDF, list of dict)
-        The last fit, and per round the median match residual of the gauge it
-        started from, the fit's RMS relative residual and its parameters.
-    """
-    import sys
-    import warnings
-
-    from .gauge import Gauge
-    from .noise import NoiseModel
-    from .options import FLOAT_DARK_LEVEL, Options
-    from .reconstruct import reconstruct
-
-    options = (options or Options()).with_levels(None, FLOAT_DARK_LEVEL)
-    quick = options.replace(light_subsets=False, max_residual=None, max_distance=None,
-                            tile=None)
-    data = np.asarray(scene, dtype=np.float32)
-    m, h, w, c = data.shape
-    colours = lights.as_lighting(c).colours[:, 0, :]  # (m, c), checked against the bands
-    rng = np.random.default_rng(0)
-    brdf = BRDF.lambert()
-    history = []
-    if m < MIN_FIT_IMAGES:
-        warnings.warn(f"brdf: {m} images are too few to fit a finish (need "
-                      f"{MIN_FIT_IMAGES}); the virtual gauge is Lambertian", UserWarning,
-                      stacklevel=2)
-        return brdf, history
-    for round_ in range(fits):
-        gauge = Gauge.virtual(lights, radius=radius, bands=c, brdf=brdf)
-        result = reconstruct(data, gauge.stack, gauge, quick, mask=mask, noise=noise,
-                             gauge_noise=NoiseModel(read=0.0, gain=0.0),
-                             gauge_levels=(None, options.dark_level))
-        ys, xs = np.nonzero(result.solved)
-        if not len(ys):
-            raise InputError("brdf fit: no scene pixel matched the virtual gauge; check "
-                             "the light file and the mask (or use --brdf lambert)")
-        if len(ys) > FIT_PIXELS:
-            pick = np.sort(rng.choice(len(ys), FIT_PIXELS, replace=False))
-            ys, xs = ys[pick], xs[pick]
-        observed = data[:, ys, xs, :].astype(np.float64)
-        usable = np.isfinite(observed) & (observed > options.dark_level)
-        if options.clip_level is not None:
-            usable &= observed < options.clip_level
-        brdf, rms = fit_brdf(observed, result.normals[ys, xs].astype(np.float64),
-                             lights.directions, colours, usable)
-        history.append(dict(round=round_ + 1, pixels=int(len(ys)),
-                            match_residual_median=result.stats.residual_median,
-                            rms_relative=rms, **brdf.as_dict()))
-        if progress:
-            print(f"brdf fit {round_ + 1}/{fits}: {len(ys)} pixels, RMS relative residual "
-                  f"{rms:.4f}, highlight {max(brdf.specular):.4f} x shininess "
-                  f"{brdf.shininess:.0f}", file=sys.stderr)
-    start, fitted = history[0]["match_residual_median"], history[-1]["match_residual_median"]
-    kept = len(history) == 1 or fitted < start
-    history[-1]["kept"] = kept
-    if not kept:
-        if fitted > (1.0 + WORSE_FIT) * start:
-            warnings.warn(f"brdf: the fitted finish matched the scene worse than a "
-                          f"Lambertian one (median residual {fitted:.2f} vs {start:.2f}); "
-                          "the virtual gauge is Lambertian", UserWarning, stacklevel=2)
-        return BRDF.lambert(), history
-    return brdf, history
-
-
 def _half_vectors(directions: np.ndarray) -> np.ndarray:
     half = np.asarray(directions, dtype=np.float64) + np.array([0.0, 0.0, 1.0])
     return half / np.linalg.norm(half, axis=1, keepdims=True)
@@ -282,8 +173,8 @@ def _lobe(cosine: np.ndarray, cos_half: np.ndarray, shininess: float) -> np.ndar
 def _hats(cosine: np.ndarray) -> np.ndarray:
     """(..., K) piecewise-linear basis over DIFFUSE_KNOTS, times the cosine."""
     knots = np.array(DIFFUSE_KNOTS)
-    basis = np.empty(cosine.shape + (len(knots),))
-    for j, knot in enumerate(knots):
+    basis = np.empty((*cosine.shape, len(knots)))
+    for j, _knot in enumerate(knots):
         unit = np.zeros(len(knots))
         unit[j] = 1.0
         basis[..., j] = np.interp(cosine, knots, unit)
@@ -316,7 +207,7 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
         When too few usable measurements are lit.
     """
     obs = np.asarray(observations, dtype=np.float64)
-    m, n_pixels, c = obs.shape
+    _m, _n_pixels, c = obs.shape
     lit = np.maximum(normals @ directions.T, 0.0).T  # (m, N) at the given normals
     use = np.asarray(usable, dtype=bool) & (lit >= MIN_FIT_COSINE)[..., None]
     obs = np.where(use, obs / intensities[:, None, :], 0.0)
@@ -328,6 +219,7 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     normals = np.array(normals, dtype=np.float64)
     grid = SHININESS_GRID
     step = np.log(SHININESS_GRID[1] / SHININESS_GRID[0])
+    brdf = BRDF.lambert()  # round 0 fits at the given normals; later rounds refine them
     for round_ in range(1 + JOINT_ROUNDS):
         if round_:
             normals = _refine_normals(obs, base_weight, normals, brdf, directions)
@@ -335,9 +227,10 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
         diffuse_basis = _hats(cosine)  # (m, N, K)
         fits = {}
 
-        def fit_at(shininess):
+        def fit_at(shininess, fits=fits, basis=diffuse_basis, cosine=cosine,
+                   cos_half=cos_half):  # this round's normals, bound now
             if shininess not in fits:
-                fits[shininess] = _fit_at(obs, base_weight, diffuse_basis,
+                fits[shininess] = _fit_at(obs, base_weight, basis,
                                           _lobe(cosine, cos_half, shininess))
             return fits[shininess][2]
 
@@ -416,7 +309,7 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
 
     from . import _brdf_kernels as kernels
 
-    m, n_pixels, c = obs.shape
+    _m, n_pixels, c = obs.shape
     k = diffuse_basis.shape[-1]
     obs, base_weight, diffuse_basis, lobe = (np.ascontiguousarray(a, dtype=np.float64) for a in
                                              (obs, base_weight, diffuse_basis, lobe))

@@ -25,7 +25,7 @@ import numpy as np
 from .errors import InputError
 from .lights import Lights
 
-__all__ = ["Highlight", "find_highlight", "calibrate_lights"]
+__all__ = ["Highlight", "calibrate_lights", "find_highlight"]
 
 # ---------------------------------------------------------------- tuning
 #: Only pixels within this fraction of the radius are searched (the rim is

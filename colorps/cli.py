@@ -15,12 +15,14 @@ import numpy as np
 
 from . import __version__
 from .errors import ColorPSError, InputError
-from .gauge import DEFAULT_ALBEDO
-from .options import AUTO_MEMORY_FRACTION, FLOAT_DARK_LEVEL, Options
+from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
+from .inputs import CaptureFiles
+from .memory import AUTO_MEMORY_FRACTION
+from .options import FLOAT_DARK_LEVEL, Options
 from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
-__all__ = ["main", "build_parser"]
+__all__ = ["build_parser", "main"]
 
 
 class _FORMATTER(argparse.HelpFormatter):
@@ -206,7 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "(.txt 'x y z' per image, .lp or .json); the gauge is rendered")
     rec.add_argument("--light-intensities", metavar="FILE",
                      help="with --lights: one 'r g b' (or one value) per image")
-    rec.add_argument("--virtual-radius", type=_positive_float, default=100.0, metavar="R",
+    rec.add_argument("--virtual-radius", type=_positive_float,
+                     default=DEFAULT_VIRTUAL_RADIUS, metavar="R",
                      help="with --lights: radius (px) of the rendered gauge sphere")
     rec.add_argument("--gauge-albedo", type=_albedo, default=DEFAULT_ALBEDO, metavar="A|R,G,B",
                      help="albedo of the gauge, one value or one per band")
@@ -387,11 +390,14 @@ def _run(args, received: list[int]) -> int:
     try:
         if args.command == "reconstruct":
             options = _options(args)
-            result = reconstruct_files(
-                args.scene, args.gauge, args.sphere, args.out, gauge_albedo=args.gauge_albedo,
-                mask_path=args.mask, options=options, lights=args.lights,
-                light_intensities=args.light_intensities, virtual_radius=args.virtual_radius,
-                overwrite=args.overwrite, progress=not args.quiet, scheduler=args.scheduler)
+            inputs = CaptureFiles(args.scene, gauge=args.gauge, sphere=args.sphere,
+                                  mask=args.mask, lights=args.lights,
+                                  light_intensities=args.light_intensities,
+                                  gauge_albedo=args.gauge_albedo,
+                                  virtual_radius=args.virtual_radius)
+            result = reconstruct_files(inputs, args.out, options=options,
+                                       overwrite=args.overwrite, progress=not args.quiet,
+                                       scheduler=args.scheduler)
             if not args.quiet:
                 s = result.stats
                 print(f"solved {s.solved} of {s.pixels} pixels "
@@ -455,7 +461,7 @@ def _options(args) -> Options:
 
 
 def _batch(args) -> int:
-    """colorps batch: every capture, a table, exit code 1 if any failed."""
+    """Colorps batch: every capture, a table, exit code 1 if any failed."""
     from .batch import find_capture, read_manifest, run_batch
     from .pipeline import dask_client
 

@@ -1,11 +1,22 @@
-"""One exception hierarchy for everything colorps refuses to do.
+"""One exception hierarchy for everything colorps refuses to do, one for its warnings.
 
 Every error a user can cause derives from :class:`ColorPSError`, so a caller
 can catch them all at once, and the CLI turns them into a one-line message and
 a non-zero exit code instead of a traceback.
 """
 
-__all__ = ["ColorPSError", "InputError", "ImageReadError", "GaugeError", "OutputError"]
+__all__ = [
+    "ColorPSError",
+    "ColorPSWarning",
+    "ExposureWarning",
+    "GaugeError",
+    "GaugeWarning",
+    "ImageReadError",
+    "InputError",
+    "LossyInputWarning",
+    "LowSolvedWarning",
+    "OutputError",
+]
 
 
 class ColorPSError(Exception):
@@ -26,3 +37,24 @@ class GaugeError(ColorPSError, ValueError):
 
 class OutputError(ColorPSError, OSError):
     """The output location cannot be written, or would overwrite results."""
+
+
+class ColorPSWarning(UserWarning):
+    """Base class of every warning colorps issues: the run goes on, but a result
+    may be less than it looks (filter them all at once with this class)."""
+
+
+class GaugeWarning(ColorPSWarning):
+    """The capture may not fix the normals (gauge losing pixels, too few images)."""
+
+
+class LowSolvedWarning(ColorPSWarning):
+    """Less than ``results.LOW_SOLVED_FRACTION`` of the masked pixels were solved."""
+
+
+class LossyInputWarning(ColorPSWarning):
+    """An input uses lossy compression (JPEG): results will be noisier."""
+
+
+class ExposureWarning(ColorPSWarning):
+    """Scene and gauge images were exposed differently (their EXIF says so)."""

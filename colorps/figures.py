@@ -10,7 +10,7 @@ import numpy as np
 
 from .io import srgb_encode
 
-__all__ = ["shaded_relief", "overview", "overview_step", "as_rgb"]
+__all__ = ["as_rgb", "overview", "overview_step", "shaded_relief"]
 
 #: The overview's panels are drawn from images subsampled to at most this many
 #: pixels on a side (a panel is 320 pixels wide): drawing a 4096-pixel image

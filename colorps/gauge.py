@@ -16,10 +16,13 @@ import numpy as np
 from .errors import GaugeError, InputError
 from .geometry import sphere_normals
 
-__all__ = ["Gauge", "find_sphere", "parse_albedo", "DEFAULT_ALBEDO", "MIN_RADIUS"]
+__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo"]
 
 #: Albedo of a gauge when none is given: a white gauge gives absolute albedo.
 DEFAULT_ALBEDO = 1.0
+#: Radius (pixels) of a rendered (virtual) gauge sphere: about 30,000 table
+#: entries; the refinement goes past its pixel grid.
+DEFAULT_VIRTUAL_RADIUS = 100.0
 
 # ---------------------------------------------------------------- tuning
 #: Smallest usable sphere radius (pixels).
@@ -101,7 +104,7 @@ class Gauge:
 
     @classmethod
     def from_sphere(cls, shape: tuple[int, int], cx: float, cy: float, radius: float,
-                    albedo=DEFAULT_ALBEDO, *, rim_margin: float | None = None) -> "Gauge":
+                    albedo=DEFAULT_ALBEDO, *, rim_margin: float | None = None) -> Gauge:
         """A sphere gauge of centre (cx, cy) and radius ``radius`` (pixels).
 
         Parameters
@@ -142,8 +145,8 @@ class Gauge:
 
 
     @classmethod
-    def virtual(cls, lights, *, radius: float = 100.0, bands: int | None = None,
-                brdf="lambert") -> "Gauge":
+    def virtual(cls, lights, *, radius: float = DEFAULT_VIRTUAL_RADIUS, bands: int | None = None,
+                brdf="lambert") -> Gauge:
         """A sphere gauge rendered under calibrated lights (no gauge photographs).
 
         Parameters
@@ -151,14 +154,14 @@ class Gauge:
         lights : Lights
             Directions and intensities, one per image (:mod:`colorps.lights`).
         radius : float, optional
-            Sphere radius in pixels of the rendered table (100 px: about 30,000
-            entries; the refinement goes past its pixel grid).
+            Sphere radius in pixels of the rendered table (default
+            :data:`DEFAULT_VIRTUAL_RADIUS`).
         bands : int, optional
             Bands of the scene images (default: the intensities').
         brdf : {"lambert", "oren-nayar"} or BRDF, optional
             The finish assumed for scene and gauge alike: a name of
             :func:`colorps.synth.render`'s, or a :class:`colorps.brdf.BRDF`
-            (fitted to the scene by :func:`colorps.brdf.fit_brdf`).
+            (fitted to the scene by :func:`colorps.virtual.fit_scene_brdf`).
 
         Returns
         -------

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["sphere_normals", "angular_error"]
+__all__ = ["angular_error", "sphere_normals"]
 
 
 def sphere_normals(shape: tuple[int, int], cx: float, cy: float,

@@ -18,6 +18,7 @@ import numpy as np
 
 from . import _grid_kernels
 from ._checks import as_float32_2d, resolve_threads
+from ._config import AUTO_N_SAMPLE
 from .errors import InputError
 
 __all__ = ["BucketGrid", "QueryStats"]
@@ -33,9 +34,8 @@ CELLS_PER_SQRT_ENTRY = 2.0
 #: residual). 10 axes measured 1.6-2.0x slower at D = 90, 5 axes 1.3-3.6x.
 SKETCH_AXES = 15
 #: Candidate N of ``n="auto"``, as factors of the default, timed on at most
-#: AUTO_N_MAX_SAMPLE queries (1 thread, best of AUTO_N_REPEATS).
+#: _config.AUTO_N_SAMPLE queries (1 thread, best of AUTO_N_REPEATS).
 AUTO_N_FACTORS = (0.25, 0.5, 1.0, 2.0)
-AUTO_N_MAX_SAMPLE = 4000
 AUTO_N_REPEATS = 3
 #: Largest grid: N^2 cells may not exceed max(MAX_CELLS_PER_ENTRY K, MIN_CELL_LIMIT)
 #: (each cell costs about 20 bytes; the default N gives 4 cells per entry, and
@@ -531,7 +531,7 @@ def default_n(size: int) -> int:
 
 
 def _choose_n(table: np.ndarray, sample: np.ndarray,
-              max_sample: int = AUTO_N_MAX_SAMPLE) -> int:
+              max_sample: int = AUTO_N_SAMPLE) -> int:
     """Pick the fastest grid size N for queries like ``sample`` (timed, 1 thread)."""
     if sample.shape[1] != table.shape[1]:
         raise InputError(

@@ -34,7 +34,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["integrate", "slopes", "weights_from_quality", "METHODS", "DEFAULT_TILE"]
+__all__ = ["DEFAULT_TILE", "METHODS", "integrate", "slopes", "weights_from_quality"]
 
 #: Names of the integration methods of :func:`integrate`.
 METHODS = ("poisson", "dct")

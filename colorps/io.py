@@ -22,19 +22,35 @@ import glob
 import os
 import tempfile
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 
-from .errors import ImageReadError, InputError, OutputError
+from .errors import ImageReadError, InputError, LossyInputWarning, OutputError
 from .options import FLOAT_DARK_LEVEL
 
-__all__ = ["read_image", "read_stack", "read_mask", "read_info", "ImageInfo",
-           "check_stack_files", "check_decoded_size", "write_image", "expand_paths",
-           "file_mode", "srgb_decode", "srgb_encode", "input_levels", "noise_base",
-           "LossyInputWarning", "ExposureWarning", "relative_exposures", "Encoding"]
+__all__ = [
+    "Encoding",
+    "ImageInfo",
+    "check_decoded_size",
+    "check_stack_files",
+    "expand_paths",
+    "file_mode",
+    "input_levels",
+    "pixel_type",
+    "read_image",
+    "read_info",
+    "read_mask",
+    "read_stack",
+    "relative_exposures",
+    "srgb_decode",
+    "srgb_encode",
+    "top_code",
+    "write_image",
+]
 
 #: How stored pixel values map to linear light.
 Encoding = Literal["auto", "linear", "srgb"]
@@ -47,16 +63,7 @@ DARK_CODES = 2.0
 #: (demosaicing and white balance are a raw converter's job): such a file is
 #: refused with advice on converting it to a linear TIFF.
 CAMERA_RAW_SUFFIXES = frozenset(
-    ".3fr .arw .cr2 .cr3 .crw .dcr .dng .erf .fff .iiq .k25 .kdc .mef .mos .mrw .nef "
-    ".nrw .orf .pef .raf .raw .rw2 .rwl .sr2 .srf .srw .x3f".split())
-
-
-class LossyInputWarning(UserWarning):
-    """An input uses lossy compression (JPEG): results will be noisier."""
-
-
-class ExposureWarning(UserWarning):
-    """Scene and gauge images were exposed differently (their EXIF says so)."""
+    [".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".fff", ".iiq", ".k25", ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw", ".rw2", ".rwl", ".sr2", ".srf", ".srw", ".x3f"])
 
 
 #: Header attributes of a photo's exposure (OpenImageIO's names of the EXIF
@@ -262,6 +269,20 @@ def atomic_target(path):
         raise
 
 
+def top_code(source) -> int | None:
+    """The largest code of an integer file's pixel type (255 for 8-bit), else None.
+
+    ``source`` is the file or its :class:`ImageInfo`."""
+    return _MAX_CODE.get(_pixel_type(source))
+
+
+def pixel_type(source) -> str:
+    """"int", "half" or "float": the kind of number a file stores (see
+    :class:`~colorps.noise.NoiseModel`). ``source`` is the file or its :class:`ImageInfo`."""
+    kind = _pixel_type(source)
+    return "int" if kind in _INTEGER_TYPES else "half" if kind == "half" else "float"
+
+
 def _pixel_type(source) -> str:
     """A file's stored pixel type, from its :class:`ImageInfo` or its header."""
     return source.pixel_type if isinstance(source, ImageInfo) else read_info(source).pixel_type
@@ -293,22 +314,6 @@ def input_levels(source, encoding: Encoding = "auto") -> tuple[float | None, flo
     if encoding in ("auto", "srgb"):
         levels = srgb_decode(levels)
     return float(levels[0]), float(levels[1])
-
-
-def noise_base(source, encoding: Encoding = "auto"):
-    """The :class:`~colorps.noise.NoiseModel` of a file's pixel type (quantisation
-    only: read noise and gain 0, to be fitted or given). ``source`` is the file
-    or its :class:`ImageInfo`."""
-    from .noise import NoiseModel
-
-    pixel_type = _pixel_type(source)
-    if pixel_type in _INTEGER_TYPES:
-        linear = encoding == "linear"
-        return NoiseModel(read=0.0, gain=0.0, pixel_type="int",
-                          top_code=_MAX_CODE[pixel_type],
-                          encoding="linear" if linear else "srgb")
-    return NoiseModel(read=0.0, gain=0.0, pixel_type="half" if pixel_type == "half"
-                      else "float")
 
 
 def srgb_decode(values) -> np.ndarray:
@@ -459,7 +464,7 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
         image, channel_names = read_image(path, encoding, rows=rows)
         if stack is None:  # filled image by image: never the images and the stack at once
             first, names = path, channel_names
-            stack = np.empty((len(paths),) + image.shape, dtype=np.float32)
+            stack = np.empty((len(paths), *image.shape), dtype=np.float32)
         elif image.shape != stack.shape[1:]:
             raise ImageReadError(
                 f"{path}: size {image.shape[1]}x{image.shape[0]} with {image.shape[2]} "

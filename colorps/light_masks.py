@@ -16,8 +16,17 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["words", "empty", "single", "of_lights", "from_bool", "to_bool", "count",
-           "lights", "is_empty"]
+__all__ = [
+    "count",
+    "empty",
+    "from_bool",
+    "is_empty",
+    "lights",
+    "of_lights",
+    "single",
+    "to_bool",
+    "words",
+]
 
 WORD_BITS = 64
 

@@ -18,15 +18,15 @@ per band (default 1).
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Lights", "read_lights", "write_lights", "LIGHT_FORMATS"]
+__all__ = ["LIGHT_FORMATS", "Lights", "read_lights", "write_lights"]
 
 #: File formats of :func:`read_lights` and :func:`write_lights`.
 LIGHT_FORMATS = (".txt", ".lp", ".json")

@@ -1,7 +1,13 @@
-"""Matching scene pixels with the gauge: band weights, band subsets, light subsets.
+"""The matching policy: which pixels are matched on which bands, weights and lights.
 
-Pixels are matched in groups that share one table: the same usable bands, the
-same band weights and the same lights. For a group with bands K, weights
+:func:`match_pixels` matches every masked pixel in groups that share one table
+(:meth:`colorps.tables.Capture.match`): first on its usable bands with band
+weights (and without its clipped lights), then, for pixels the match leaves
+far outside the noise, without the lights that explain least (light subsets,
+for cast shadows and highlights). The residuals are put on the capture's
+model scale in between.
+
+For a group with bands K, weights
 2^l_k and lights L the table holds, for every gauge pixel with those bands
 usable, the concatenation of 2^l_k g_k (g_k: band k's unit signature over L),
 and a pixel's query is the same of its own signatures. The nearest entry is
@@ -17,35 +23,445 @@ ratio |S_k| / sigma_k relative to the pixel's best band; a band more than
 
 from __future__ import annotations
 
-import time
-from collections import OrderedDict
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from . import _pixel_kernels
-from .errors import InputError
-from .grid import BucketGrid
+from . import _pixel_kernels, light_masks
+from ._config import AUTO_N_SAMPLE
 from .noise import NoiseModel
-from .residuals import match_residual, table_resolution
+from .options import Options
+from .residuals import light_residuals
+from .tables import Capture, GroupResult
 
-__all__ = ["Capture", "GaugeTables", "GroupResult", "band_snr", "weight_levels", "nearest"]
+__all__ = [
+    "MatchGroup",
+    "Matches",
+    "band_snr",
+    "first_match",
+    "match_pixels",
+    "measured_model_scale",
+    "model_scale_pixels",
+    "weight_levels",
+]
 
 # ---------------------------------------------------------------- tuning
 #: Band weights are 2^level, level = round(log2(relative SNR)) in DROP_LEVEL + 1 .. 0;
 #: a band at DROP_LEVEL or below is dropped (it carries under 1/64 of the
 #: information of the best band).
 DROP_LEVEL = -3
-#: Groups of fewer pixels are matched by brute force instead of a grid.
-BRUTE_FORCE_PIXELS = 128
-#: Brute force works on blocks of about this many distances (queries x table rows).
-BRUTE_FORCE_BLOCK = 1 << 22
-#: GaugeTables keeps grids up to this many MiB (a 30k-entry colour grid of 8
-#: images takes about 16): the ones first built, which are the largest groups'.
-TABLE_CACHE_MIB = 192
-#: A capture keeps the gauge over the light subsets it matched last up to this many
-#: MiB (a 201 x 201 gauge of RGB images takes 2.5 MiB a subset).
-LIGHT_SET_CACHE_MIB = 256
+#: Side (pixels) of the tiles in which pixels are looked up. Neighbouring pixels
+#: look up the same gauge entries, which then stay in the CPU's caches: colour
+#: m = 30 lookups are ~18 % faster than row by row (docs/benchmarks.md).
+LOOKUP_TILE = 32
+#: A pixel with clipped measurements in at most this fraction of the images
+#: keeps its bands and drops those images' lights instead.
+MAX_CLIPPED_FRACTION = 0.5
+#: Light subsets: pixels whose residual (noise units) exceeds SUBSET_TRIGGER are
+#: re-matched without each of their lights in turn; the best is kept when its
+#: residual is at most SUBSET_GAIN of the old one. At least MIN_LIGHTS lights
+#: remain, and at most MAX_SUBSET_GROUPS tables are built per round (the
+#: largest groups first).
+SUBSET_TRIGGER = 3.0
+SUBSET_GAIN = 0.7
+MIN_LIGHTS = 3
+MAX_SUBSET_GROUPS = 128
+#: A pixel tries dropping at most this many of its lights per round: those its
+#: match explains least (largest |per-light residual|). Every light when m is at
+#: most this; with DiLiGenT's 96 lights, trying all cost 190 s of a 205 s run.
+MAX_LIGHTS_TRIED = 8
+#: The model scale is measured on about this many masked pixels at most: every
+#: s-th row and column of the mask (:func:`model_scale_pixels`), the same pixels
+#: however the scene is tiled, so a tiled run's first pass matches only them.
+#: The median of 2^16 residuals is within about 0.5 % of the whole image's.
+MODEL_SCALE_PIXELS = 2 ** 16
+
+
+@dataclass(frozen=True)
+class MatchGroup:
+    """One table and grid, built for the pixels whose usable bands are ``bands``.
+
+    Attributes
+    ----------
+    bands : tuple of int
+        Signature bands matched (all bands unless some were unusable).
+    table_size : int
+        Gauge entries in the table (gauge pixels with those bands usable).
+    grid_n : int or None
+        None when the group was small enough for brute force.
+    pixels : int
+        Scene pixels matched with it.
+    lights_dropped : tuple of int
+        Lights left out of the table (light subsets).
+    """
+
+    bands: tuple[int, ...]
+    table_size: int
+    grid_n: int | None
+    pixels: int
+    lights_dropped: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Nearest gauge entry of every scene pixel, over its usable bands and lights."""
+
+    row: np.ndarray         # (H, W) flat gauge pixel index of the match, -1: none
+    quality: np.ndarray     # (H, W) residual in noise units (NaN: no match attempted)
+    distance: np.ndarray    # (H, W) plain signature distance per band
+    bands_used: np.ndarray  # (H, W) bit mask of the bands matched
+    dropped: np.ndarray     # (H, W, words) light masks of the lights dropped
+    brighter: np.ndarray    # (H, W, words): of those, the ones brighter than the match
+    groups: tuple[MatchGroup, ...]
+    model_scale: float
+    buckets: float          # summed over lookups
+    tests: float
+    seconds_grid: float
+    seconds_lookup: float
+
+
+def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress: bool,
+           model_scale: float | None = None) -> Matches:
+    """Match every masked pixel: one table per (bands, weights) group, then light subsets.
+
+    Pixels with every band usable are matched on the full signature, the
+    others on the bands they have when those still fix a normal (bands x
+    (m - 1) >= 2). In colour mode with ``band_weights`` each band is weighted
+    by its signal-to-noise ratio (:func:`colorps.matching.weight_levels`).
+    The residuals are then divided by the capture's model scale, and, with
+    ``light_subsets``, pixels left far outside the noise are re-matched
+    without their most deviant light (:func:`_light_subsets`).
+    """
+    state = first_match(capture, mask, options, progress)
+    matched = state.row >= 0
+    if model_scale is None:
+        model_scale = measured_model_scale(state.quality[matched & model_scale_pixels(mask)])
+    state.quality[matched] /= model_scale
+    if options.light_subsets and capture.images >= MIN_LIGHTS + 1:
+        _light_subsets(capture, state, options, model_scale)
+    return state.result(model_scale)
+
+
+def first_match(capture: Capture, mask: np.ndarray, options: Options,
+                 progress: bool) -> _MatchState:
+    """Every masked pixel's match on its usable bands, before light subsets; the
+    residuals are not yet divided by the model scale."""
+    from tqdm.auto import tqdm
+
+    h, w = mask.shape
+    m, n_bands = capture.images, capture.bands
+    ys, xs = _tile_order(mask)
+    valid = capture.scene_valid[ys, xs]
+    levels = np.zeros(valid.shape, dtype=np.int8)
+    if options.band_weights and n_bands > 1:
+        levels = weight_levels(band_snr(capture.scene_ov, ys, xs, valid, capture.model))
+        kept = valid & (levels > DROP_LEVEL)
+        fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
+        valid = np.where(fixes_normal[:, None], kept, valid)
+        levels = np.where(valid, np.maximum(levels, DROP_LEVEL + 1), 0).astype(np.int8)
+    dropped = light_masks.empty((len(ys),), m)
+    if options.light_subsets:
+        dropped, valid, levels = _drop_clipped_lights(capture, ys, xs, valid, levels,
+                                                      options)
+    code = (valid * (1 << np.arange(n_bands))).sum(axis=-1)
+    state = _MatchState.empty(h, w, n_bands, m)
+    state.levels[ys, xs] = levels
+    words = dropped.shape[1]
+    # One int64 row per pixel: its light-mask words (bit for bit), bands, levels.
+    keys, inverse = _group_rows(np.column_stack([dropped.view(np.int64), code.astype(np.int64),
+                                                 levels.astype(np.int64)]))
+    order = np.argsort(-np.bincount(inverse), kind="stable")
+    with tqdm(total=len(ys), desc="matching", unit="px", unit_scale=True,
+              disable=not progress, leave=False) as bar:
+        for g in order:
+            mask_words = keys[g, :words].view(np.uint64)
+            lights_dropped = light_masks.lights(mask_words)
+            bands = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
+            pick = inverse == g
+            bar.update(int(pick.sum()))
+            if len(bands) * (m - len(lights_dropped) - 1) < 2:
+                continue  # these bands cannot fix a normal: reported by _reasons
+            gy, gx = ys[pick], xs[pick]
+            kept = tuple(i for i in range(m) if i not in lights_dropped)
+            result = capture.match(gy, gx, bands,
+                                   tuple(int(v) for v in keys[g, words + 1:][list(bands)]),
+                                   kept,
+                                   grid_n=options.grid_n, threads=options.threads,
+                                   sample_size=AUTO_N_SAMPLE)
+            state.record(gy, gx, result, bands, keys[g, words], lights_dropped)
+            state.dropped[gy, gx] = mask_words
+            state.brighter[gy, gx] = mask_words  # clipped: brighter than recorded
+    return state
+
+
+def model_scale_pixels(mask: np.ndarray, step: int | None = None, first_row: int = 0
+                       ) -> np.ndarray:
+    """The masked pixels whose first residuals give the model scale.
+
+    Every ``step``-th row and column, counted from row and column 0 of the
+    whole scene; by default ``step`` = floor(sqrt(masked pixels /
+    MODEL_SCALE_PIXELS)), at least 1 (every pixel of a scene of up to
+    4 x MODEL_SCALE_PIXELS masked pixels).
+
+    Parameters
+    ----------
+    mask : (H, W) ndarray of bool
+        Pixels to solve (of the scene, or of a band of its rows).
+    step : int, optional
+        The whole scene's step, for a band of its rows.
+    first_row : int, optional
+        Row of the whole scene where ``mask`` begins.
+    """
+    if step is None:
+        step = max(1, math.isqrt(int(np.count_nonzero(mask)) // MODEL_SCALE_PIXELS))
+    picked = np.zeros(mask.shape, dtype=bool)
+    picked[(-first_row) % step::step, ::step] = True
+    return picked & mask
+
+
+def measured_model_scale(residuals: np.ndarray) -> float:
+    """The model scale of first-pass residuals: their RMS median, when above 1.
+
+    The BRDF and light mismatch every pixel shares; 1 when the noise model
+    explains the median pixel.
+    """
+    if residuals.size == 0:
+        return 1.0
+    return float(np.sqrt(max(1.0, np.median(residuals.astype(np.float32) ** 2))))
+
+
+def _drop_clipped_lights(capture: Capture, ys, xs, valid, levels, options: Options):
+    """Pixels that lose a band to a few clipped measurements keep the band and drop
+    those lights instead (at most MAX_CLIPPED_FRACTION of them; at least MIN_LIGHTS
+    remain; invalid values still make a band unusable). Returns their dropped-light
+    masks, usable bands and levels."""
+    m = capture.images
+    unusable = capture.scene_clipped[ys, xs]
+    count = light_masks.count(unusable)
+    invalid = capture.scene_invalid[ys, xs]
+    candidates = (count > 0) & (count <= MAX_CLIPPED_FRACTION * m) & \
+        (m - count >= MIN_LIGHTS) & ~valid.all(axis=-1) & ~invalid
+    dropped = light_masks.empty((len(ys),), m)
+    if not candidates.any():
+        return dropped, valid, levels
+    pick = np.flatnonzero(candidates)
+    kept = ~light_masks.to_bool(unusable[pick], m)  # (P', m)
+    ov = capture.scene_ov[ys[pick], xs[pick]] * kept[:, None, :]
+    norms = np.sqrt(np.einsum("...i,...i->...", ov, ov, dtype=np.float64))
+    bands = norms > capture.min_norm
+    enough = bands.sum(axis=-1) * (kept.sum(axis=-1) - 1) >= 2
+    pick, bands = pick[enough], bands[enough]
+    dropped[pick] = unusable[pick]
+    valid = valid.copy()
+    valid[pick] = bands
+    levels = levels.copy()
+    levels[pick] = 0
+    return dropped, valid, levels
+
+
+@dataclass
+class _MatchState:
+    """Per-pixel matches while they are being improved (mutable, private)."""
+
+    row: np.ndarray
+    quality: np.ndarray
+    distance: np.ndarray
+    bands_used: np.ndarray
+    levels: np.ndarray
+    dropped: np.ndarray
+    brighter: np.ndarray
+    groups: list
+    totals: np.ndarray  # buckets, tests, seconds grid, seconds lookup
+
+    @classmethod
+    def empty(cls, h: int, w: int, n_bands: int, m: int) -> _MatchState:
+        return cls(row=np.full((h, w), -1, dtype=np.int64),
+                   quality=np.full((h, w), np.nan, dtype=np.float32),
+                   distance=np.full((h, w), np.nan, dtype=np.float32),
+                   bands_used=np.zeros((h, w), dtype=np.uint8),
+                   levels=np.zeros((h, w, n_bands), dtype=np.int8),
+                   dropped=light_masks.empty((h, w), m),
+                   brighter=light_masks.empty((h, w), m), groups=[],
+                   totals=np.zeros(4))
+
+    def record(self, ys, xs, result: GroupResult, bands, code, lights_dropped) -> None:
+        """Keep a group's matches."""
+        self.totals += (result.buckets, result.tests, result.seconds_grid,
+                        result.seconds_lookup)
+        self.groups.append(MatchGroup(tuple(int(k) for k in bands), result.table_size,
+                                      result.grid_n, len(ys), tuple(lights_dropped)))
+        self.row[ys, xs] = result.rows
+        self.quality[ys, xs] = result.residual
+        self.distance[ys, xs] = result.distance
+        self.bands_used[ys, xs] = code
+
+    def result(self, model_scale: float) -> Matches:
+        b, d, t_grid, t_lookup = self.totals
+        return Matches(self.row, self.quality, self.distance, self.bands_used,
+                        self.dropped, self.brighter, tuple(self.groups), model_scale,
+                        b, d, t_grid, t_lookup)
+
+
+def _light_subsets(capture: Capture, state: _MatchState, options: Options,
+                   model_scale: float) -> None:
+    """Re-match pixels far outside the noise without the lights that explain least.
+
+    A pixel whose residual exceeds SUBSET_TRIGGER is matched again once per
+    light it still uses, each time without that light (one table per light
+    subset and band subset, built when first needed; tables of few pixels are
+    brute force), and keeps the best of these when it lowers its residual.
+    This repeats, greedily, up to ``max_dropped_lights`` times (at least
+    MIN_LIGHTS lights remain); in the end a pixel keeps its subset match only
+    if that lowered the residual to at most SUBSET_GAIN of the full match's.
+    A dropped light is "darker" (cast shadow) or "brighter" (highlight,
+    interreflection) than the final match predicts. Subset tables weigh a
+    pixel's usable bands alike: with band weights too, the number of tables
+    would multiply.
+    """
+    before = dict(row=state.row.copy(), quality=state.quality.copy(),
+                  distance=state.distance.copy(), dropped=state.dropped.copy(),
+                  brighter=state.brighter.copy())
+    for _ in range(options.max_dropped_lights):
+        if not _drop_one_more(capture, state, options, model_scale):
+            break  # still check the gain and classify what earlier rounds dropped
+    # Keep a subset match only where it explains the pixel clearly better.
+    changed = (state.dropped != before["dropped"]).any(axis=-1)
+    revert = changed & ~(state.quality <= SUBSET_GAIN * before["quality"])
+    for name, value in before.items():
+        getattr(state, name)[revert] = value[revert]
+    ky, kx = np.nonzero((state.dropped != before["dropped"]).any(axis=-1))
+    if not ky.size:
+        return
+    # Darker or brighter than the final match predicts?
+    m, n_bands = capture.images, capture.bands
+    lights = ~light_masks.to_bool(state.dropped[ky, kx], m)
+    band_mask = ((state.bands_used[ky, kx][:, None] >> np.arange(n_bands)) & 1) == 1
+    z = light_residuals(capture.scene_ov[ky, kx],
+                        capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ky, kx]],
+                        lights, band_mask, capture.model)
+    state.brighter[ky, kx] = before["brighter"][ky, kx] | \
+        light_masks.from_bool(~lights & (z > 0))
+    for subset, count in zip(*np.unique(state.dropped[ky, kx], axis=0, return_counts=True)):
+        state.groups.append(MatchGroup(tuple(range(n_bands)), 0, None, int(count),
+                                       light_masks.lights(subset)))
+
+
+def _drop_one_more(capture: Capture, state: _MatchState, options: Options,
+                   model_scale: float) -> bool:
+    """One round of light subsets: every pixel still far outside the noise tries
+    its match without each light it may drop (:func:`_lights_to_try`) and keeps
+    the best that lowers its residual. False when no pixel tried or gained."""
+    m, n_bands = capture.images, capture.bands
+    bits = light_masks.single(m)
+    words = bits.shape[1]
+    left = m - light_masks.count(state.dropped)
+    candidates = (state.row >= 0) & (state.quality > SUBSET_TRIGGER) & \
+        (left - 1 >= MIN_LIGHTS)
+    if not candidates.any():
+        return False
+    ys, xs = _tile_order(candidates)
+    best_q = state.quality[ys, xs].copy()
+    best_light = np.full(len(ys), -1)
+    best_rows = np.full(len(ys), -1, dtype=np.int64)
+    best_distance = np.zeros(len(ys), dtype=np.float32)
+    dropped = state.dropped[ys, xs]
+    codes = state.bands_used[ys, xs].astype(np.uint64)
+    which_pixel, which_light = np.nonzero(_lights_to_try(capture, state, ys, xs))
+    keys, inverse = _group_rows(
+        np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel]]))
+    for g in np.argsort(-np.bincount(inverse), kind="stable")[:MAX_SUBSET_GROUPS]:
+        pick = np.flatnonzero(inverse == g)
+        pixels = which_pixel[pick]
+        lights_kept = tuple(int(i) for i in
+                            np.flatnonzero(~light_masks.to_bool(keys[g, :words], m)))
+        band_tuple = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
+        result = capture.match(ys[pixels], xs[pixels], band_tuple,
+                               (0,) * len(band_tuple), lights_kept, grid_n=options.grid_n,
+                               threads=options.threads, sample_size=AUTO_N_SAMPLE)
+        state.totals += (result.buckets, result.tests, result.seconds_grid,
+                         result.seconds_lookup)
+        residual = result.residual / model_scale
+        better = np.isfinite(residual) & (result.rows >= 0) & (residual < best_q[pixels])
+        chosen = pixels[better]
+        best_q[chosen] = residual[better]
+        best_light[chosen] = which_light[pick][better]
+        best_rows[chosen] = result.rows[better]
+        best_distance[chosen] = result.distance[better]
+    keep = best_light >= 0
+    if not keep.any():
+        return False
+    ky, kx, light = ys[keep], xs[keep], best_light[keep]
+    state.row[ky, kx] = best_rows[keep]
+    state.quality[ky, kx] = best_q[keep]
+    state.distance[ky, kx] = best_distance[keep]
+    state.dropped[ky, kx] |= bits[light]
+    return True
+
+
+def _lights_to_try(capture: Capture, state: _MatchState, ys, xs) -> np.ndarray:
+    """(P, m) bool: the lights each pixel tries to drop this round.
+
+    Lights it still uses, at most MAX_LIGHTS_TRIED of them: the ones with the
+    largest |per-light residual| against its current match.
+    """
+    m, n_bands = capture.images, capture.bands
+    used = ~light_masks.to_bool(state.dropped[ys, xs], m)
+    tried = used.copy()
+    if m <= MAX_LIGHTS_TRIED or not len(ys):
+        return tried
+    band_mask = ((state.bands_used[ys, xs][:, None] >> np.arange(n_bands)) & 1) == 1
+    z = light_residuals(capture.scene_ov[ys, xs],
+                        capture.gauge_ov.reshape(-1, n_bands, m)[state.row[ys, xs]],
+                        used, band_mask, capture.model)
+    score = np.where(tried, np.abs(z), -np.inf)
+    top = np.argpartition(-score, MAX_LIGHTS_TRIED - 1, axis=1)[:, :MAX_LIGHTS_TRIED]
+    chosen = np.zeros_like(tried)
+    np.put_along_axis(chosen, top, True, axis=1)
+    return chosen & tried
+
+
+def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices of the true ``pixels``, tile by tile.
+
+    Tiles of ``tile`` x ``tile`` pixels in row-major order, pixels row-major
+    within a tile (see :data:`LOOKUP_TILE`).
+    """
+    ys, xs = np.nonzero(pixels)  # row-major, which a stable sort keeps within tiles
+    tiles_across = -(-pixels.shape[1] // tile)
+    key = (ys // tile) * tiles_across + xs // tile
+    if key.size and key.max() < 2 ** 16:
+        key = key.astype(np.uint16)  # numpy sorts small integers by radix sort
+    order = np.argsort(key, kind="stable")
+    return ys[order], xs[order]
+
+
+def _group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of a (P, k) integer array and each row's group index.
+
+    What ``np.unique(rows, axis=0, return_inverse=True)`` returns (groups in
+    lexicographic order), from one 1-D unique of a mixed-radix code of each
+    row: columns of a small range of values are digits as they are, others are
+    first replaced by their rank, and the code is compacted whenever the next
+    digit could overflow it.
+    """
+    group = np.zeros(len(rows), dtype=np.int64)
+    span = 1  # group < span
+    for column in rows.T:
+        low, high = int(column.min(initial=0)), int(column.max(initial=0))
+        if high - low < 1 << 16:
+            digit, width = column - low, high - low + 1
+        else:
+            _, digit = np.unique(column, return_inverse=True)
+            width = int(digit.max(initial=0)) + 1
+        if span * width >= 1 << 62:
+            _, group = np.unique(group, return_inverse=True)
+            span = int(group.max(initial=0)) + 1
+        group = group * width + digit.ravel()
+        span *= width
+    _, first, group = np.unique(group, return_index=True, return_inverse=True)
+    return rows[first], group.ravel()
 
 
 def weight_levels(snr: np.ndarray) -> np.ndarray:
@@ -92,278 +508,3 @@ def band_snr(scene_ov: np.ndarray, ys: np.ndarray, xs: np.ndarray, valid: np.nda
     _pixel_kernels.band_snr(scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
                             np.ascontiguousarray(valid, dtype=bool), *model.kernel_args(), out)
     return out
-
-
-class GaugeTables:
-    """Bucket grids of one gauge's tables, kept to be used again.
-
-    The tiles of a capture match against the same tables (same gauge, options
-    and model): with one GaugeTables passed to each tile's
-    :func:`colorps.reconstruct`, every table's grid is built once instead of
-    once per tile (in each Dask worker: a scattered copy fills on its own).
-    Grids are kept while they fit in ``max_mib``; the first built stay (a
-    tile matches its largest groups first, so those are the ones kept).
-    The gauge they were built for is checked by a fingerprint of its
-    observation vectors and settings: another gauge raises an InputError.
-    """
-
-    def __init__(self, max_mib: float = TABLE_CACHE_MIB) -> None:
-        import threading
-
-        self.max_bytes = int(max_mib * 2 ** 20)
-        self.bytes = 0
-        self.reused = 0
-        self._grids: dict = {}
-        self._fingerprint = None
-        self._lock = threading.Lock()
-
-    def attach(self, fingerprint: bytes) -> None:
-        """Check (or, the first time, record) the gauge's fingerprint."""
-        with self._lock:
-            if self._fingerprint is None:
-                self._fingerprint = fingerprint
-            elif fingerprint != self._fingerprint:
-                raise InputError("tables: these GaugeTables were built for another gauge "
-                                 "or other options; use one per capture and settings")
-
-    def get(self, key):
-        grid = self._grids.get(key)
-        if grid is not None:
-            self.reused += 1
-        return grid
-
-    def keep(self, key, grid: BucketGrid) -> None:
-        size = grid.nbytes
-        with self._lock:
-            if key not in self._grids and self.bytes + size <= self.max_bytes:
-                self._grids[key] = grid
-                self.bytes += size
-
-    def __getstate__(self) -> dict:  # sent to Dask workers empty, without the lock
-        return dict(max_bytes=self.max_bytes, fingerprint=self._fingerprint)
-
-    def __setstate__(self, state: dict) -> None:
-        self.__init__(state["max_bytes"] / 2 ** 20)
-        self._fingerprint = state["fingerprint"]
-
-
-def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None,
-            sample=None, tables: GaugeTables | None = None, key=None
-            ) -> tuple[np.ndarray, float, float, int | None]:
-    """Exact nearest table row of each query; (rows, summed b, summed d, grid N or None).
-
-    With ``tables`` the grid of ``key`` is taken from it when it holds one,
-    and a grid built is offered to it."""
-    grid = None if tables is None else tables.get(key)
-    if grid is None and len(queries) < BRUTE_FORCE_PIXELS:
-        t = table.astype(np.float64)
-        t2 = np.einsum("ij,ij->i", t, t)
-        rows = np.empty(len(queries), dtype=np.int64)
-        # Blocks of queries x table rows distances (not x dimensions too: with 96
-        # lights that left one query per block, a matrix-vector product each).
-        step = max(1, BRUTE_FORCE_BLOCK // max(1, len(table)))
-        for a in range(0, len(queries), step):
-            q = queries[a:a + step].astype(np.float64)
-            d2 = t2[None, :] - 2.0 * q @ t.T
-            rows[a:a + step] = np.argmin(d2, axis=1)
-        return rows, float(len(queries)), float(len(queries) * len(table)), None
-    if grid is None:
-        grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
-        if tables is not None:
-            tables.keep(key, grid)
-    rows, _, st = grid.query(queries, threads=threads, return_stats=True)
-    return (rows, float(st.buckets_per_query.sum()), float(st.tests_per_query.sum()),
-            grid.n)
-
-
-@dataclass
-class _LightSet:
-    """The gauge over one subset of lights: what tables and residuals need.
-
-    Its unit signatures are the gauge's OVs over ``lights`` divided by
-    sqrt(norm2), computed where the kernels read them (stored, they took
-    46 MiB a subset for a 201 x 201 gauge of 96 RGB images).
-    """
-
-    gauge_ov: np.ndarray    # (Hg, Wg, B, m) float32, every light (shared, not owned)
-    lights: np.ndarray      # (m',) int64
-    norm2: np.ndarray       # (Hg, Wg, B)
-    variance: np.ndarray    # (Hg, Wg, B)
-    usable: np.ndarray      # (Hg, Wg, B) bool
-    #: (Hg * Wg, B) h^2 (residuals.table_resolution), computed at the pixels
-    #: matched so far (NaN elsewhere): a subset's groups match few of them.
-    resolution: np.ndarray = field(init=False)
-
-    def __post_init__(self) -> None:
-        hg, wg, n_bands = self.usable.shape
-        self.resolution = np.full((hg * wg, n_bands), np.nan)
-
-    def resolution_at(self, rows: np.ndarray) -> np.ndarray:
-        """The whole (Hg * Wg, B) h^2 array, computed at least at ``rows``."""
-        todo = rows[np.isnan(self.resolution[rows, 0])]
-        if len(todo):
-            todo = np.arange(len(self.resolution)) if len(todo) > len(self.resolution) \
-                else np.unique(todo)
-            table_resolution(self.gauge_ov, self.usable.all(axis=-1), todo,
-                             out=self.resolution, lights=self.lights, norm2=self.norm2)
-        return self.resolution
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes this light set owns (not the shared gauge OVs)."""
-        return sum(a.nbytes for a in (self.norm2, self.variance, self.resolution,
-                                      self.usable))
-
-
-@dataclass(frozen=True)
-class GroupResult:
-    """One group's matches: gauge pixel (flat index, -1: no table) and residual."""
-
-    rows: np.ndarray
-    residual: np.ndarray
-    distance: np.ndarray  # plain signature distance per band (unweighted)
-    table_size: int
-    grid_n: int | None
-    buckets: float
-    tests: float
-    seconds_grid: float
-    seconds_lookup: float
-
-
-@dataclass
-class Capture:
-    """Scene and gauge observation vectors, per band, with the noise model.
-
-    Attributes
-    ----------
-    scene_ov : (H, W, B, m) ndarray of float32
-        Scene OVs of the signature bands (0 where a band is unusable).
-    scene_valid : (H, W, B) ndarray of bool
-    scene_clipped : (H, W, words) ndarray of uint64
-        Light masks (:mod:`colorps.light_masks`) of the images with a clipped
-        measurement at a scene pixel.
-    scene_invalid : (H, W) ndarray of bool
-        Scene pixels with an invalid (NaN, Inf, negative) measurement.
-    gauge_ov : (Hg, Wg, B, m) ndarray of float32
-    gauge_valid : (Hg, Wg, B) ndarray of bool
-        Usable bands of gauge pixels inside the gauge mask.
-    gauge_normals : (Hg * Wg, 3) ndarray
-    model : NoiseModel
-        Of the scene's measurements.
-    min_norm : float
-        Smallest usable OV norm over any light subset.
-    gauge_model : NoiseModel, optional
-        Of the gauge's measurements, when its files differ from the scene's.
-    tables : GaugeTables, optional
-        Grids kept from other pieces of the same capture (checked against
-        :meth:`gauge_fingerprint`), and offered the ones built here.
-    """
-
-    scene_ov: np.ndarray
-    scene_valid: np.ndarray
-    gauge_ov: np.ndarray
-    gauge_valid: np.ndarray
-    gauge_normals: np.ndarray
-    model: NoiseModel
-    min_norm: float
-    gauge_model: NoiseModel | None = None
-    scene_clipped: np.ndarray | None = None
-    scene_invalid: np.ndarray | None = None
-    tables: GaugeTables | None = None
-    _light_sets: OrderedDict = field(default_factory=OrderedDict)
-    _gauge_variance: np.ndarray | None = None
-
-    @property
-    def images(self) -> int:
-        return self.scene_ov.shape[-1]
-
-    @property
-    def bands(self) -> int:
-        return self.scene_ov.shape[-2]
-
-    def __post_init__(self) -> None:
-        self.gauge_ov = np.ascontiguousarray(self.gauge_ov)  # the kernels read it often
-        if self.tables is not None:
-            self.tables.attach(self.gauge_fingerprint())
-
-    def gauge_fingerprint(self) -> bytes:
-        """A digest of everything the tables are made of: the gauge's OVs, its
-        usable bands and the smallest usable norm."""
-        import hashlib
-
-        digest = hashlib.blake2b(np.ascontiguousarray(self.gauge_ov).tobytes())
-        digest.update(np.ascontiguousarray(self.gauge_valid).tobytes())
-        digest.update(repr((self.gauge_ov.shape, float(self.min_norm))).encode())
-        return digest.digest()
-
-    def light_set(self, lights: tuple[int, ...]) -> _LightSet:
-        """The gauge restricted to ``lights``, kept while the light sets used last
-        fit in LIGHT_SET_CACHE_MIB (the set of every light always stays)."""
-        if lights in self._light_sets:
-            self._light_sets.move_to_end(lights)
-        else:
-            if self._gauge_variance is None:  # per measurement, computed once
-                model = self.gauge_model or self.model
-                self._gauge_variance = np.ascontiguousarray(model.sigma(self.gauge_ov) ** 2)
-            hg, wg, n_bands, _ = self.gauge_ov.shape
-            norm2 = np.empty((hg, wg, n_bands))
-            variance = np.empty((hg, wg, n_bands), dtype=np.float32)
-            usable = np.empty((hg, wg, n_bands), dtype=bool)
-            light_index = np.array(lights, dtype=np.int64)
-            _pixel_kernels.light_set(self.gauge_ov, light_index,
-                                     np.ascontiguousarray(self.gauge_valid),
-                                     float(self.min_norm), self._gauge_variance, norm2,
-                                     variance, usable)
-            self._light_sets[lights] = _LightSet(gauge_ov=self.gauge_ov, lights=light_index,
-                                                 norm2=norm2, variance=variance, usable=usable)
-            self._forget_light_sets(keep=lights)
-        return self._light_sets[lights]
-
-    def _forget_light_sets(self, keep: tuple[int, ...]) -> None:
-        """Drop the least recently used light sets beyond LIGHT_SET_CACHE_MIB."""
-        every = tuple(range(self.images))
-        total = sum(s.nbytes for s in self._light_sets.values())
-        for lights in list(self._light_sets):
-            if total <= LIGHT_SET_CACHE_MIB * 2 ** 20:
-                break
-            if lights not in (keep, every):
-                total -= self._light_sets.pop(lights).nbytes
-
-    def match(self, ys: np.ndarray, xs: np.ndarray, bands: tuple[int, ...],
-              levels: tuple[int, ...], lights: tuple[int, ...], *, grid_n=None,
-              threads=None, sample_size: int = 4000) -> GroupResult:
-        """Match pixels (ys, xs) on ``bands`` weighted 2^levels over ``lights``."""
-        t0 = time.perf_counter()
-        gauge = self.light_set(lights)
-        band_list = list(bands)
-        table_px = gauge.usable[..., band_list].all(axis=-1)
-        scale = np.exp2(np.array(levels, dtype=np.float32))[:, None]
-        n_rows = len(ys)
-        if table_px.sum() < 3:
-            nothing = np.full(n_rows, np.nan, np.float32)
-            return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
-                               0.0, time.perf_counter() - t0, 0.0)
-        band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
-        table_rows = np.flatnonzero(table_px)
-        table = np.empty((len(table_rows), len(bands) * len(lights)), dtype=np.float32)
-        _pixel_kernels.group_table(self.gauge_ov, light_index, gauge.norm2, table_rows,
-                                   band_index, scale[:, 0], table)
-        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
-        queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
-        _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
-                                     scale[:, 0], queries)
-        sample = queries[:: max(1, n_rows // sample_size)]
-        t_grid = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        found, b_sum, d_sum, n = nearest(table, queries, grid_n=grid_n, threads=threads,
-                                         sample=sample, tables=self.tables,
-                                         key=(bands, levels, lights, grid_n))
-        rows = table_rows[found]
-        t_lookup = time.perf_counter() - t0
-        residual, distance = match_residual(
-            self.scene_ov, ys, xs, band_index, light_index, rows,
-            self.gauge_ov, gauge.norm2.reshape(-1, self.bands),
-            gauge.variance.reshape(-1, self.bands),
-            gauge.resolution_at(rows), self.model)
-        return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
-                           t_grid, t_lookup)

@@ -11,7 +11,7 @@ from .figures import as_rgb
 from .interrupts import interrupts_kept
 from .io import atomic_target, srgb_encode
 
-__all__ = ["height_mesh", "write_mesh", "MESH_FORMATS"]
+__all__ = ["MESH_FORMATS", "height_mesh", "write_mesh"]
 
 #: Mesh file formats (extensions) that :func:`write_mesh` writes.
 MESH_FORMATS = ("ply", "obj")

@@ -23,13 +23,14 @@ colour signatures, the quality map and the acceptance of a match.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal
 
 import numpy as np
 
-__all__ = ["NoiseModel", "estimate_noise", "quantisation_sigma"]
+__all__ = ["NoiseModel", "estimate_noise", "file_noise", "quantisation_sigma"]
 
 #: The read-noise floor of floating-point data with no measurable scatter (linear).
 FLOAT_READ_NOISE = 1e-5
@@ -164,6 +165,26 @@ class NoiseModel:
                     top_code=self.top_code, encoding=self.encoding, estimated=self.estimated)
 
 
+def file_noise(source, encoding: Literal["auto", "linear", "srgb"] = "auto") -> NoiseModel:
+    """The noise model of a file's pixel type: its quantisation only (read noise
+    and gain 0, to be fitted or given).
+
+    Parameters
+    ----------
+    source : str, Path or ImageInfo
+        The file, or its header as already read (:func:`colorps.io.read_info`).
+    encoding : {"auto", "linear", "srgb"}
+        How its integer codes map to linear light ("auto": sRGB).
+    """
+    from .io import pixel_type, top_code
+
+    kind = pixel_type(source)
+    if kind == "int":
+        return NoiseModel(read=0.0, gain=0.0, pixel_type="int", top_code=top_code(source),
+                          encoding="linear" if encoding == "linear" else "srgb")
+    return NoiseModel(read=0.0, gain=0.0, pixel_type=kind)
+
+
 @lru_cache(maxsize=1)
 def _quantisation_levels() -> np.ndarray:
     """The QUANTISATION_SAMPLES levels in 0..1 the quantisation term is tabulated at."""
@@ -241,7 +262,7 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
     r = np.concatenate(residuals)
     edges = np.quantile(v, np.linspace(0, 1, NOISE_BINS + 1))
     rows, target = [], []
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in itertools.pairwise(edges):
         pick = (v >= lo) & (v <= hi)
         if pick.sum() < NOISE_MIN_PIXELS:
             continue

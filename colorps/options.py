@@ -19,18 +19,13 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Options", "FLOAT_DARK_LEVEL", "MIN_IMAGES", "AUTO_MEMORY_FRACTION",
-           "dark_threshold"]
+__all__ = ["FLOAT_DARK_LEVEL", "MIN_IMAGES", "Options", "dark_threshold"]
 
 #: Noise floor of one measurement of a floating-point image (linear units): the
 #: dark level that "auto" means for EXR / float TIFF files and for arrays.
 FLOAT_DARK_LEVEL = 1e-4 / 3
 #: Fewest images each mode can work with.
 MIN_IMAGES = {"mono": 3, "colour": 2}
-#: Share of the memory available at the start of a run that an "auto"
-#: ``memory_limit_gib`` lets it use (the rest for the system, other programs
-#: and the memory model's error).
-AUTO_MEMORY_FRACTION = 0.8
 
 _MODES = ("colour", "mono")
 _ENCODINGS = ("auto", "linear", "srgb")
@@ -112,10 +107,10 @@ class Options:
         A tiled run checks one tile against it.
     memory_limit_gib : float, "auto" or None
         Files only: choose ``tile`` so that the run's estimated peak memory
-        stays under this many GiB (:func:`colorps.tiles.rows_for_memory`);
+        stays under this many GiB (:func:`colorps.memory.rows_for_memory`);
         refuse the run when even the smallest tiles would not fit. "auto":
-        ``AUTO_MEMORY_FRACTION`` of the memory available when the run starts
-        (:func:`colorps.tiles.available_memory_bytes`: the system's, within a
+        ``colorps.memory.AUTO_MEMORY_FRACTION`` of the memory available when the run starts
+        (:func:`colorps.memory.available_memory_bytes`: the system's, within a
         container's or cluster job's cgroup limit), so a capture larger than the
         machine's memory runs in tiles instead of running out of it. None: no
         limit. Ignored when ``tile`` is given.
@@ -214,14 +209,14 @@ class Options:
         if self.mesh is not None and not self.height:
             raise InputError("mesh: a mesh needs the height map (height=True)")
 
-    def replace(self, **changes) -> "Options":
+    def replace(self, **changes) -> Options:
         """A copy with some fields changed (checked like a new object)."""
         unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
         if unknown:
             raise InputError(f"unknown option(s): {', '.join(unknown)}")
         return dataclasses.replace(self, **changes)
 
-    def with_levels(self, clip_level: float | None, dark_level: float) -> "Options":
+    def with_levels(self, clip_level: float | None, dark_level: float) -> Options:
         """Resolve "auto" levels to the given ones (those of the input files)."""
         return self.replace(
             clip_level=clip_level if self.clip_level == "auto" else self.clip_level,

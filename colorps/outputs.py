@@ -46,9 +46,9 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -57,10 +57,17 @@ from .figures import as_rgb, overview, shaded_relief
 from .interrupts import interrupts_kept
 from .io import file_mode, srgb_encode, write_image
 from .reasons import Reason, reason_picture
-from .reconstruct import Reconstruction
+from .results import Reconstruction
 
-__all__ = ["OUTPUT_FILES", "HEIGHT_FILES", "MESH_FILES", "prepare_output_dir",
-           "save_reconstruction", "check_height_targets", "save_height"]
+__all__ = [
+    "HEIGHT_FILES",
+    "MESH_FILES",
+    "OUTPUT_FILES",
+    "check_height_targets",
+    "prepare_output_dir",
+    "save_height",
+    "save_reconstruction",
+]
 
 #: Written by every reconstruction.
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
@@ -322,7 +329,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
         for kind in mesh:
             writers[MESH_FILES[kind]] = lambda p: _write_mesh(final().height, result.albedo, p)
     about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS,
-             "files": list(writers) + ["report.json"]}
+             "files": [*list(writers), "report.json"]}
     writers["report.json"] = lambda p: p.write_text(json.dumps(
         {**(report or {}), "statistics": final().stats.as_dict(), **about}, indent=2,
         default=_jsonable))
@@ -338,7 +345,7 @@ def _write_light_channels(path, dropped: np.ndarray, m: int, exr_tile=None):
     masks' 64-bit words (no per-image array)."""
     per_word = 64 // LIGHTS_PER_CHANNEL
     starts = range(0, m, LIGHTS_PER_CHANNEL)
-    channels = np.empty(dropped.shape[:2] + (len(starts),), dtype=np.float32)
+    channels = np.empty((*dropped.shape[:2], len(starts)), dtype=np.float32)
     for j, _ in enumerate(starts):
         shift = np.uint64(LIGHTS_PER_CHANNEL * (j % per_word))
         channels[..., j] = (dropped[..., j // per_word] >> shift) & \

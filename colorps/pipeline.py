@@ -1,29 +1,65 @@
 """Files in, files out: the work behind ``colorps reconstruct`` and ``colorps integrate``.
 
-Each function reads in one straight line: check the outputs, read the inputs,
-call the array API (:func:`colorps.reconstruct`, :func:`colorps.integrate`),
-write the outputs (:mod:`colorps.outputs`). Option values arrive converted
+:func:`reconstruct_files` reads top to bottom, each step a call into its own
+module: check the output folder (:mod:`colorps.outputs`), read the headers and
+plan the run (:mod:`colorps.io`, :func:`colorps.memory.plan_tiles`), read the
+scene, resolve the settings against the files (:func:`colorps.resolve.resolve`),
+make the gauge (photographed: :meth:`colorps.Gauge.from_sphere`; rendered:
+:func:`colorps.virtual.virtual_gauge`), match (:func:`colorps.reconstruct`, or
+:func:`colorps.tiles.reconstruct_tiled`), integrate the height
+(:func:`colorps.integrate`) while the maps are written
+(:func:`colorps.outputs.save_reconstruction`). Option values arrive converted
 (:class:`~colorps.Options`); the command line only parses arguments.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import sys
 import time
 import warnings
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Literal, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from . import __version__
-from .errors import InputError
-from .gauge import DEFAULT_ALBEDO
+from .calibrate import calibrate_lights
+from .errors import ExposureWarning, InputError, OutputError
+from .figures import overview_step
+from .gauge import Gauge, find_sphere
+from .inputs import CaptureFiles
+from .integrate import DEFAULT_TILE, integrate, weights_from_quality
+from .io import (
+    check_decoded_size,
+    check_stack_files,
+    expand_paths,
+    input_levels,
+    read_image,
+    read_mask,
+    read_stack,
+)
+from .lights import LIGHT_FORMATS, read_lights, write_lights
+from .memory import TilePlan, plan_tiles, release_freed_memory
 from .options import Options
-from .reconstruct import Reconstruction
+from .outputs import (
+    TILED_EXR_SIDE,
+    check_height_targets,
+    prepare_output_dir,
+    save_height,
+    save_reconstruction,
+)
+from .reconstruct import reconstruct
+from .resolve import Resolved, StackModel, resolve
+from .results import Reconstruction
+from .tiles import StackFiles, reconstruct_tiled
+from .virtual import virtual_gauge
 
-__all__ = ["reconstruct_files", "integrate_file", "calibrate_lights_files", "dask_client"]
+__all__ = ["calibrate_lights_files", "dask_client", "integrate_file", "reconstruct_files"]
 
 #: A normal map's finite pixels must be unit vectors within this (half-float
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
@@ -37,39 +73,23 @@ SCHEDULER_TIMEOUT = 10
 EXPOSURE_TOLERANCE = 0.02
 
 
-def reconstruct_files(scene_patterns: str | Sequence[str],
-                      gauge_patterns: str | Sequence[str] | None,
-                      sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
-                      gauge_albedo=DEFAULT_ALBEDO, mask_path=None, options: Options | None = None,
-                      lights=None, light_intensities=None, virtual_radius: float = 100.0,
+def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = None,
                       overwrite: bool = False, progress: bool = True,
                       scheduler=None) -> Reconstruction:
-    """Read scene and gauge stacks, reconstruct, and write the output folder.
+    """Read a capture, reconstruct, and write the output folder.
 
     Parameters
     ----------
-    scene_patterns, gauge_patterns : str or sequence of str
-        Globs, paths or ``@list.txt`` files (see :func:`colorps.io.expand_paths`),
-        paired in natural order.
-    sphere : "auto" or (cx, cy, r)
-        Gauge sphere in gauge-image pixels, or found with :func:`colorps.find_sphere`.
-        Both gauge arguments are None when ``lights`` is given.
+    inputs : CaptureFiles
+        The scene images, and the gauge images and sphere or a light file, the
+        mask and the gauge's albedo (see :class:`colorps.inputs.CaptureFiles`).
     out : str or Path
         Output folder (see :mod:`colorps.outputs` for the files).
-    gauge_albedo : float or sequence of float, optional
-        Albedo of the gauge, one value or one per band.
-    mask_path : str or Path, optional
-        Scene mask image (non-zero = solve).
     options : Options, optional
-        Settings (default ``Options()``); "auto" levels come from the first
-        scene file's pixel type (see :func:`colorps.io.input_levels`).
+        Settings (default ``Options()``); "auto" levels come from each stack's
+        files (see :func:`colorps.resolve.resolve`).
     overwrite : bool, optional
         Replace existing results.
-    lights, light_intensities : str or Path, optional
-        A light file (:func:`colorps.read_lights`) instead of gauge images: the
-        gauge is rendered (:meth:`colorps.Gauge.virtual`, a sphere of
-        ``virtual_radius`` pixels with the finish ``options.brdf``: by default
-        fitted to the scene, :func:`colorps.brdf.fit_scene_brdf`).
     progress : bool, optional
         Progress bars on reading and matching.
     scheduler : str or dask.distributed.Client, optional
@@ -81,145 +101,181 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
     -------
     Reconstruction
         With its height map when ``options.height``.
-    """
-    from .brdf import BRDF, fit_scene_brdf
-    from .figures import overview_step
-    from .gauge import Gauge, find_sphere
-    from .lights import read_lights
-    from .noise import NoiseModel, estimate_noise
-    from .integrate import DEFAULT_TILE, integrate, weights_from_quality
-    from .io import (check_decoded_size, check_stack_files, expand_paths, input_levels,
-                     noise_base, read_image, read_mask, read_stack)
-    from .outputs import TILED_EXR_SIDE, prepare_output_dir, save_reconstruction
-    from .reconstruct import reconstruct
-    from .tiles import (DEFAULT_TILE_ROWS, StackFiles, memory_limit, reconstruct_tiled,
-                        release_freed_memory, rows_for_memory)
 
+    Examples
+    --------
+    >>> import tempfile
+    >>> from colorps.inputs import CaptureFiles
+    >>> from colorps.pipeline import reconstruct_files
+    >>> from colorps.sample import sample_folder
+    >>> folder = sample_folder()
+    >>> files = CaptureFiles(str(folder / "scene_*.exr"), gauge=str(folder / "gauge_*.exr"),
+    ...                      mask=folder / "mask.png")
+    >>> with tempfile.TemporaryDirectory() as out:
+    ...     result = reconstruct_files(files, out, progress=False)
+    >>> result.stats.solved == result.stats.pixels_by_reason["solved"]
+    True
+    """
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
-    if (lights is None) == (gauge_patterns is None):
-        raise InputError("give either gauge images (and their sphere) or a light file")
-    scene_paths = expand_paths(scene_patterns, name="scene")
-    # Every header first: sizes, channels, pixel types and memory, before any pixel.
-    limit = options.max_input_gib * 2 ** 30
-    scene_infos = check_stack_files(scene_paths, name="scene")
-    scene_info = scene_infos[0]
-    limit_gib, limit_source = memory_limit(options.memory_limit_gib)
-    why_tiled = None if options.tile is None else f"--tile {options.tile}"
-    if options.tile is None and limit_gib is not None:
-        options = options.replace(tile=rows_for_memory(
-            limit_gib, (len(scene_paths), scene_info.height, scene_info.width,
-                        scene_info.channels), source=limit_source))
-        if options.tile is not None:
-            why_tiled = f"{limit_source} is too small for the whole scene"
-    if scheduler is not None and options.tile is None:
-        options = options.replace(tile=DEFAULT_TILE_ROWS)
-        why_tiled = "--scheduler: tiles are its tasks"
-    tiled = options.tile is not None
-    if not tiled:
-        check_decoded_size(scene_infos, limit, name="scene")
-    else:
-        # One tile's stack is what is held at a time.
-        tile_bytes = 4 * len(scene_paths) * scene_info.channels * scene_info.width * \
-            min(options.tile, scene_info.height)
-        if tile_bytes > limit:
-            raise InputError(f"{scene_paths[0]}: a tile of {options.tile} rows of "
-                             f"{len(scene_paths)} images takes {tile_bytes / 2 ** 30:.1f} "
-                             f"GiB, more than --max-input-gib {options.max_input_gib:g}; "
-                             "use fewer rows (--tile)")
-        if lights is not None and "auto" in (options.read_noise, options.gain):
-            raise InputError(f"a tiled run ({why_tiled}) with --lights needs "
-                             "--read-noise and --gain: the noise of a virtual-gauge run is "
-                             "fitted to the whole scene at once")
-        if lights is not None and options.brdf == "fitted":
-            raise InputError(f"a tiled run ({why_tiled}) with --lights needs "
-                             "--brdf lambert: the finish of a virtual-gauge run is fitted to "
-                             "the whole scene at once")
-    exposures = None
-    if lights is not None:
-        light_set = read_lights(lights, light_intensities, images=len(scene_paths))
-        gauge_paths = []
-    else:
-        gauge_paths = expand_paths(gauge_patterns, name="gauge")
-        if len(scene_paths) != len(gauge_paths):
-            raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
-                             f"{len(gauge_paths)}; they are paired in order")
-        gauge_infos = check_stack_files(gauge_paths, name="gauge", max_bytes=limit)
-        gauge_info = gauge_infos[0]
-        exposures = _check_exposures(scene_infos, gauge_infos)
-        if gauge_info.channels != scene_info.channels:
-            raise InputError(f"{gauge_paths[0]}: has {gauge_info.channels} channel(s) but "
-                             f"{scene_paths[0]} has {scene_info.channels}")
+    scene_paths = expand_paths(inputs.scene, name="scene")
+    stacks = _Stacks(scene_paths, check_stack_files(scene_paths, name="scene"))
+    plan = plan_tiles(stacks.shape, tile=options.tile,
+                      memory_limit_gib=options.memory_limit_gib, scheduler=scheduler)
+    options = options.replace(tile=plan.rows)
+    _check_memory(stacks, inputs, options, plan)
+    stacks = _with_gauge_headers(stacks, inputs, options)
     mask = None
-    if mask_path is not None:
-        mask = read_mask(mask_path, (scene_info.height, scene_info.width))
+    if inputs.mask is not None:
+        mask = read_mask(inputs.mask, stacks.shape[1:3])
         if not mask.any():
-            raise InputError(f"{mask_path}: the mask selects no pixel (non-zero = solve)")
-    if tiled:
-        if progress:  # a tiled run is slower: say why it is tiled
-            from tqdm import tqdm
-
-            tqdm.write(f"colorps: the scene's {scene_info.height} rows in tiles of "
-                       f"{options.tile} ({why_tiled})", file=sys.stderr)
-        scene = StackFiles(tuple(scene_paths), (len(scene_paths), scene_info.height,
-                                                scene_info.width, scene_info.channels),
-                           options.encoding)
-        names = read_image(scene_paths[0], options.encoding, rows=(0, 1))[1]
-    else:
-        scene, names = read_stack(scene_paths, options.encoding, name="scene",
-                                  progress=progress)
-    scene_noise = noise_base(scene_info, options.encoding)
-    requested = options  # "auto" levels resolve per stack, from its own files
-    options = options.with_levels(*input_levels(scene_info, options.encoding))
-    brdf = fit_history = None
-    if lights is not None:
-        gauge_noise = NoiseModel(read=0.0, gain=0.0)  # rendered: only float rounding
-        gauge_levels = options.replace(clip_level=None)
-        if "auto" in (options.read_noise, options.gain):
-            # A rendered gauge has no scatter to measure: measure the scene's.
-            usable = np.isfinite(scene).all(axis=(0, 3)) & (scene > 0).all(axis=(0, 3))
-            if mask is not None:
-                usable &= mask
-            fitted = estimate_noise(scene, usable, scene_noise)
-            options = options.replace(
-                read_noise=fitted.read if options.read_noise == "auto" else options.read_noise,
-                gain=fitted.gain if options.gain == "auto" else options.gain)
-        brdf = BRDF.lambert()
-        if options.brdf == "fitted":
-            brdf, fit_history = fit_scene_brdf(scene, light_set, options, mask=mask,
-                                               noise=scene_noise, radius=virtual_radius,
-                                               progress=progress)
-        gauge = Gauge.virtual(light_set, radius=virtual_radius, bands=scene.shape[3],
-                              brdf=brdf)
-        gauge_stack, found = gauge.stack, gauge.sphere
-    else:
-        gauge_stack, _ = read_stack(gauge_paths, options.encoding, name="gauge",
-                                    progress=progress)
-        # Levels and quantisation belong to each stack's files (checked alike above).
-        gauge_levels = requested.with_levels(*input_levels(gauge_info, options.encoding))
-        gauge_noise = noise_base(gauge_info, options.encoding)
-        found = find_sphere(gauge_stack) if sphere == "auto" else tuple(sphere)
-        gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *found, albedo=gauge_albedo)
-
-    levels = (gauge_levels.clip_level, gauge_levels.dark_level)
-    if tiled:
+            raise InputError(f"{inputs.mask}: the mask selects no pixel (non-zero = solve)")
+    scene, names = _read_scene(stacks, options, plan, progress)
+    run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
+                  gauge=None if inputs.lights is not None else
+                  StackModel.of_file(stacks.gauge_infos[0], options.encoding))
+    gauge, gauge_stack, run, virtual = _make_gauge(inputs, stacks, scene, run, mask, progress)
+    if plan.rows is not None:
         with dask_client(scheduler) as client:
             result, preview = reconstruct_tiled(
-                scene, gauge_stack, gauge, options, tile=options.tile, mask=mask,
-                noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,
-                client=client, progress=progress, return_preview=True)
+                scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
+                progress=progress, return_preview=True)
     else:
-        result = reconstruct(scene, gauge_stack, gauge, options, mask=mask,
-                             noise=scene_noise, gauge_noise=gauge_noise, gauge_levels=levels,
-                             progress=progress)
+        result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
         step = overview_step(scene.shape[1:3])
         preview = scene[:, ::step, ::step].mean(axis=0)  # what the overview draws
     del scene  # the stack is not needed past here: free it for integration and writing
-    _check_solved(result, scene_paths, gauge_paths, mask_path)
+    _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+    report = _report(inputs, stacks, run, plan, gauge, virtual, names)
+    return _save(result, out, run.options, plan, report, names, preview, overwrite)
+
+
+@dataclass(frozen=True)
+class _Stacks:
+    """The files of a capture's stacks and their headers, checked (private)."""
+
+    scene_paths: list
+    scene_infos: list
+    gauge_paths: list = dataclasses.field(default_factory=list)
+    gauge_infos: list = dataclasses.field(default_factory=list)
+    light_set: object = None  # Lights, with a light file
+    exposures: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """(m, H, W, c) of the scene."""
+        info = self.scene_infos[0]
+        return len(self.scene_paths), info.height, info.width, info.channels
+
+
+def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options) -> _Stacks:
+    """The scene's stacks with the gauge's headers or the light file, checked
+    against the scene's, before any pixel is read."""
+    scene_paths, scene_infos = stacks.scene_paths, stacks.scene_infos
+    if inputs.lights is not None:
+        light_set = read_lights(inputs.lights, inputs.light_intensities,
+                                images=len(scene_paths))
+        return dataclasses.replace(stacks, light_set=light_set)
+    gauge_paths = expand_paths(inputs.gauge, name="gauge")
+    if len(scene_paths) != len(gauge_paths):
+        raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
+                         f"{len(gauge_paths)}; they are paired in order")
+    gauge_infos = check_stack_files(gauge_paths, name="gauge",
+                                    max_bytes=options.max_input_gib * 2 ** 30)
+    if gauge_infos[0].channels != scene_infos[0].channels:
+        raise InputError(f"{gauge_paths[0]}: has {gauge_infos[0].channels} channel(s) but "
+                         f"{scene_paths[0]} has {scene_infos[0].channels}")
+    return dataclasses.replace(stacks, gauge_paths=gauge_paths, gauge_infos=gauge_infos,
+                               exposures=_check_exposures(scene_infos, gauge_infos))
+
+
+def _check_memory(stacks: _Stacks, inputs: CaptureFiles, options: Options,
+                  plan: TilePlan) -> None:
+    """Refuse what would not fit in ``--max-input-gib``, or cannot run in tiles."""
+    limit = options.max_input_gib * 2 ** 30
+    if plan.rows is None:
+        check_decoded_size(stacks.scene_infos, limit, name="scene")
+        return
+    m, h, w, c = stacks.shape
+    tile_bytes = 4 * m * c * w * min(plan.rows, h)  # one tile's stack is held at a time
+    if tile_bytes > limit:
+        raise InputError(f"{stacks.scene_paths[0]}: a tile of {plan.rows} rows of "
+                         f"{m} images takes {tile_bytes / 2 ** 30:.1f} GiB, more than "
+                         f"--max-input-gib {options.max_input_gib:g}; use fewer rows (--tile)")
+    if inputs.lights is not None and "auto" in (options.read_noise, options.gain):
+        raise InputError(f"a tiled run ({plan.why}) with --lights needs --read-noise and "
+                         "--gain: the noise of a virtual-gauge run is fitted to the whole "
+                         "scene at once")
+    if inputs.lights is not None and options.brdf == "fitted":
+        raise InputError(f"a tiled run ({plan.why}) with --lights needs --brdf lambert: the "
+                         "finish of a virtual-gauge run is fitted to the whole scene at once")
+
+
+def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: bool):
+    """The scene stack (left in its files for a tiled run) and its channel names."""
+    if plan.rows is None:
+        return read_stack(stacks.scene_paths, options.encoding, name="scene",
+                          progress=progress)
+    _m, h, _w, _c = stacks.shape
+    if progress:  # a tiled run is slower: say why it is tiled
+        from tqdm import tqdm
+
+        tqdm.write(f"colorps: the scene's {h} rows in tiles of {plan.rows} ({plan.why})",
+                   file=sys.stderr)
+    scene = StackFiles(tuple(stacks.scene_paths), stacks.shape, options.encoding)
+    return scene, read_image(stacks.scene_paths[0], options.encoding, rows=(0, 1))[1]
+
+
+def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mask,
+                progress: bool):
+    """(gauge, its stack, the settings with it, the virtual gauge's finish and fits or
+    None): photographed, or rendered under the light file."""
+    if stacks.light_set is not None:
+        gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
+                                               radius=inputs.virtual_radius,
+                                               progress=progress)
+        return gauge, gauge.stack, run, (brdf, fits)
+    gauge_stack, _ = read_stack(stacks.gauge_paths, run.options.encoding, name="gauge",
+                                progress=progress)
+    sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
+    gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo)
+    return gauge, gauge_stack, run, None
+
+
+def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan,
+            gauge: Gauge, virtual, names) -> dict:
+    """What report.json says of the run's inputs and settings."""
+    brdf, fits = virtual if virtual is not None else (None, None)
+    clip, dark = run.gauge_levels
+    return dict(
+        colorps_version=__version__, scene=[str(p) for p in stacks.scene_paths],
+        gauge=[str(p) for p in stacks.gauge_paths],
+        sphere=dict(zip(("cx", "cy", "r"), gauge.sphere)),
+        sphere_found_automatically=inputs.sphere == "auto",
+        lights=None if inputs.lights is None else str(inputs.lights),
+        light_intensities=(None if inputs.light_intensities is None
+                           else str(inputs.light_intensities)),
+        virtual_gauge=inputs.lights is not None, gauge_albedo=inputs.gauge_albedo,
+        brdf=None if brdf is None else brdf.as_dict(), brdf_fits=fits,
+        mask=None if inputs.mask is None else str(inputs.mask), channels=names,
+        options=run.options.as_dict(), memory_limit_gib_used=plan.limit_gib,
+        tiled_because=plan.why,
+        exposure_scene_over_gauge=(None if stacks.exposures is None
+                                   else stacks.exposures.tolist()),
+        gauge_levels=dict(clip_level=clip, dark_level=dark))
+
+
+def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report: dict,
+          names, preview, overwrite: bool) -> Reconstruction:
+    """Integrate the height and write every output file; the result with its height.
+
+    A tiled run integrates first, in tiles (memory is what counts); an untiled
+    run integrates in a thread while the maps are written (the solver and
+    OpenImageIO's writers release the GIL): the two overlap."""
+    tiled = plan.rows is not None
 
     def with_height(result: Reconstruction) -> Reconstruction:
         t0 = time.perf_counter()
-        # A tiled run integrates in tiles too (memory of one tile + a coarse level).
         height = integrate(result.normals, result.solved,
                            weights=weights_from_quality(result.quality),
                            tile=DEFAULT_TILE if tiled else None)
@@ -227,26 +283,8 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
             release_freed_memory()
         return result.with_height(height, time.perf_counter() - t0)
 
-    if options.height and tiled:  # one thing at a time: memory is what counts
+    if options.height and tiled:
         result = with_height(result)
-
-    report = dict(
-        colorps_version=__version__, scene=[str(p) for p in scene_paths],
-        gauge=[str(p) for p in gauge_paths], sphere=dict(zip(("cx", "cy", "r"), found)),
-        sphere_found_automatically=sphere == "auto",
-        lights=None if lights is None else str(lights),
-        light_intensities=None if light_intensities is None else str(light_intensities),
-        virtual_gauge=lights is not None, gauge_albedo=gauge_albedo,
-        brdf=None if brdf is None else brdf.as_dict(), brdf_fits=fit_history,
-        mask=None if mask_path is None else str(mask_path), channels=names,
-        options=options.as_dict(), memory_limit_gib_used=limit_gib,
-        tiled_because=why_tiled,
-        exposure_scene_over_gauge=None if exposures is None else exposures.tolist(),
-        gauge_levels=dict(clip_level=gauge_levels.clip_level,
-                          dark_level=gauge_levels.dark_level),
-    )
-    # An untiled run integrates in a thread while the maps are written (the
-    # solver and OpenImageIO's writers release the GIL): the two overlap.
     with ThreadPoolExecutor(max_workers=1) as pool:
         finished = pool.submit(with_height, result) \
             if options.height and result.height is None else None
@@ -259,7 +297,7 @@ def reconstruct_files(scene_patterns: str | Sequence[str],
 def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
     """Warn when the headers say scene and gauge were exposed differently;
     return each scene image's exposure over its gauge image's (or None)."""
-    from .io import ExposureWarning, relative_exposures
+    from .io import relative_exposures
 
     ratios = relative_exposures(scene_infos, gauge_infos)
     if ratios is None:
@@ -343,10 +381,6 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
     (H, W) ndarray
         The height map.
     """
-    from .integrate import integrate, weights_from_quality
-    from .io import read_image, read_mask
-    from .outputs import check_height_targets, save_height
-
     check_height_targets(out, mesh, overwrite=overwrite)  # fail before the work
     normals, _ = read_image(normals_path, "linear")
     if normals.shape[2] < 3:
@@ -398,14 +432,6 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
     -------
     (Lights, list of Highlight, (cx, cy, r))
     """
-    from pathlib import Path
-
-    from .calibrate import calibrate_lights
-    from .errors import OutputError
-    from .gauge import find_sphere
-    from .io import check_stack_files, expand_paths, input_levels, read_stack
-    from .lights import LIGHT_FORMATS, write_lights
-
     out = Path(out)
     if out.suffix.lower() not in LIGHT_FORMATS:
         raise InputError(f"{out}: light files are {', '.join(LIGHT_FORMATS)}")

@@ -19,14 +19,22 @@ isotropic 2-D Gaussian (68 % radius = 1.515 sigma per axis).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from . import _refine_kernels
 from .noise import NoiseModel
 
-__all__ = ["refine_normals", "quadratic_models", "noise_arrays", "Refinement",
-           "REFINE_METHODS", "RADIUS_68"]
+__all__ = [
+    "RADIUS_68",
+    "REFINE_METHODS",
+    "Matched",
+    "Refinement",
+    "noise_tables",
+    "quadratic_models",
+    "refine_normals",
+]
 
 #: Gauge pixels whose models are fitted at a time (bounds the patch memory).
 MODEL_CHUNK = 4096
@@ -108,8 +116,7 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
             np.ascontiguousarray(coef[..., values.shape[2]:, :]), window)
 
 
-def noise_arrays(scene: NoiseModel, gauge: NoiseModel
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def noise_tables(scene: NoiseModel, gauge: NoiseModel) -> _refine_kernels.NoiseTables:
     """The kernel's description of two noise models (NoiseModel.kernel_args of each,
     stacked): (2, 3) (read^2, gain, pixel kind), the (Q,) levels 0..1 and the
     (2, Q) quantisation sigma at them (integer files; 0 for the others)."""
@@ -123,12 +130,34 @@ def noise_arrays(scene: NoiseModel, gauge: NoiseModel
         noise[row] = (read2, gain, kind)
         if model.pixel_type == "int":
             table[row] = model_table
-    return noise, levels, table
+    return _refine_kernels.NoiseTables(noise, levels, table)
+
+
+class Matched(NamedTuple):
+    """Matched pixels to refine.
+
+    Attributes
+    ----------
+    ys, xs : (P,) ndarray of int
+        The pixels.
+    rows : (P,) ndarray of int
+        Flat index of each pixel's matched gauge pixel.
+    bands : (P,) ndarray of uint8
+        Bit k set: band k was matched.
+    dropped : (P, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`) of the lights left out of
+        each match.
+    """
+
+    ys: np.ndarray
+    xs: np.ndarray
+    rows: np.ndarray
+    bands: np.ndarray
+    dropped: np.ndarray
 
 
 def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np.ndarray,
-                   usable: np.ndarray, ys: np.ndarray, xs: np.ndarray, rows: np.ndarray,
-                   bands: np.ndarray, dropped: np.ndarray, scene_noise: NoiseModel,
+                   usable: np.ndarray, matched: Matched, scene_noise: NoiseModel,
                    gauge_noise: NoiseModel, *, model_scale: float = 1.0,
                    threads: int | None = None) -> Refinement:
     """Refine matched normals continuously (see the module docstring).
@@ -142,15 +171,8 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     gauge_normals : (Hg, Wg, 3) ndarray
     usable : (Hg, Wg) ndarray of bool
         Gauge pixels whose measurements and normal may be used.
-    ys, xs : (P,) ndarray of int
-        The pixels to refine.
-    rows : (P,) ndarray of int
-        Flat index of each pixel's matched gauge pixel.
-    bands : (P,) ndarray of uint8
-        Bit k set: band k was matched.
-    dropped : (P, words) ndarray of uint64
-        Light masks (:mod:`colorps.light_masks`) of the lights left out of
-        each match.
+    matched : Matched
+        The pixels to refine and their matches.
     scene_noise, gauge_noise : NoiseModel
         Weights are 1 / (sigma_S^2 + (|S_k| / |G_k|)^2 sigma_G^2).
     model_scale : float, optional
@@ -167,35 +189,31 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     from ._checks import resolve_threads
 
     hg, wg, b, m = gauge_ov.shape
-    n = len(rows)
-    qy, qx = np.divmod(np.asarray(rows, dtype=np.int64), wg)
-    matched = np.zeros((hg, wg), dtype=bool)
-    matched[qy, qx] = True
+    n = len(matched.rows)
+    qy, qx = np.divmod(np.asarray(matched.rows, dtype=np.int64), wg)
+    near = np.zeros((hg, wg), dtype=bool)
+    near[qy, qx] = True
     reach = 2 * _refine_kernels.MAX_MOVES + 1  # the fit may move this far
-    needed = binary_dilation(matched, np.ones((reach, reach), bool))
+    needed = binary_dilation(near, np.ones((reach, reach), bool))
     coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
                                            usable, needed)
-    noise, levels, table = noise_arrays(scene_noise, gauge_noise)
-    out_y = qy.copy()
-    out_x = qx.copy()
-    out_u = np.zeros(n)
-    out_v = np.zeros(n)
-    out_normal = np.zeros((n, 3))
-    out_cov = np.full(n, np.nan)
-    out_ok = np.zeros(n, dtype=bool)
+    gauge = _refine_kernels.GaugeModel(coef, ncoef, window,
+                                       np.ascontiguousarray(gauge_ov, dtype=np.float32))
+    pixels = _refine_kernels.Pixels(
+        np.ascontiguousarray(scene_ov, dtype=np.float32), np.asarray(matched.ys, np.int64),
+        np.asarray(matched.xs, np.int64), qy, qx, np.asarray(matched.bands, np.uint8),
+        np.ascontiguousarray(matched.dropped, dtype=np.uint64).reshape(n, -1))
+    out = _refine_kernels.Refined(y=qy.copy(), x=qx.copy(), u=np.zeros(n), v=np.zeros(n),
+                                  normal=np.zeros((n, 3)), cov=np.full(n, np.nan),
+                                  ok=np.zeros(n, dtype=bool))
     previous = numba.get_num_threads()
     numba.set_num_threads(resolve_threads(threads))
     try:
-        _refine_kernels.refine(
-            coef, ncoef, window, np.ascontiguousarray(scene_ov, dtype=np.float32),
-            np.ascontiguousarray(gauge_ov, dtype=np.float32),
-            np.asarray(ys, dtype=np.int64), np.asarray(xs, dtype=np.int64), qy, qx,
-            np.asarray(bands, dtype=np.uint8),
-            np.ascontiguousarray(dropped, dtype=np.uint64).reshape(n, -1), noise,
-            levels, table, out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok)
+        _refine_kernels.refine(gauge, pixels, noise_tables(scene_noise, gauge_noise), out)
     finally:
         numba.set_num_threads(previous)
-    table_normals = gauge_normals.reshape(-1, 3)[rows]
+    out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok = out
+    table_normals = gauge_normals.reshape(-1, 3)[matched.rows]
     normals = np.where(out_ok[:, None], out_normal, table_normals).astype(np.float32)
     sigma = np.sqrt(np.maximum(out_cov / 2.0, 0.0)) * model_scale
     uncertainty = np.where(out_ok, np.degrees(RADIUS_68 * sigma), np.nan).astype(np.float32)

@@ -30,11 +30,20 @@ positive for a highlight.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .noise import NoiseModel
 
-__all__ = ["table_resolution", "match_residual", "light_residuals", "MODEL_FLOOR"]
+__all__ = [
+    "MODEL_FLOOR",
+    "GaugeOverLights",
+    "MatchedGroup",
+    "light_residuals",
+    "match_residual",
+    "table_resolution",
+]
 
 #: Signature residual per band (unit vectors; 0.005 is about 0.3 degrees between
 #: two OVs) that any match is allowed on top of noise and table resolution.
@@ -85,9 +94,48 @@ def table_resolution(signatures: np.ndarray, usable: np.ndarray, rows=None,
     return out.reshape(h, w, n_bands) if whole else out
 
 
-def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2,
-                   gauge_var, resolution, model: NoiseModel
-                   ) -> tuple[np.ndarray, np.ndarray]:
+class MatchedGroup(NamedTuple):
+    """Pixels matched on one group's bands and lights.
+
+    Attributes
+    ----------
+    ys, xs : (P,) ndarray of int
+        The matched pixels.
+    bands, lights : sequence of int
+        The bands matched and the lights used (m' of them).
+    rows : (P,) ndarray of int
+        Each pixel's match: a flat gauge pixel index.
+    """
+
+    ys: np.ndarray
+    xs: np.ndarray
+    bands: np.ndarray
+    lights: np.ndarray
+    rows: np.ndarray
+
+
+class GaugeOverLights(NamedTuple):
+    """The gauge over a group's lights, as its residuals need it.
+
+    Attributes
+    ----------
+    ov : (Hg, Wg, B, m) ndarray of float32
+        The gauge's OVs over every light (its unit signatures over the lights
+        are these divided by sqrt(norm2)).
+    norm2, variance : (Hg * Wg, B) ndarray
+        Squared gauge OV norms and mean measurement variances over the lights.
+    resolution : (Hg * Wg, B) ndarray
+        h^2 of each gauge pixel (:func:`table_resolution`).
+    """
+
+    ov: np.ndarray
+    norm2: np.ndarray
+    variance: np.ndarray
+    resolution: np.ndarray
+
+
+def match_residual(scene_ov: np.ndarray, group: MatchedGroup, gauge: GaugeOverLights,
+                   model: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
     """The residual r of matched pixels (see the module docstring), and their
     plain signature distance per band, sqrt(mean over bands of d_k).
 
@@ -95,19 +143,10 @@ def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2,
     ----------
     scene_ov : (H, W, B, m) ndarray of float32
         The scene's observation vectors.
-    ys, xs : (P,) ndarray of int
-        The matched pixels.
-    bands, lights : sequence of int
-        The bands matched and the lights used (m' of them).
-    rows : (P,) ndarray of int
-        Each pixel's match: a flat gauge pixel index.
-    gauge_ov : (Hg, Wg, B, m) ndarray of float32
-        The gauge's OVs over every light (its unit signatures over ``lights``
-        are these divided by sqrt(gauge_norm2)).
-    gauge_norm2, gauge_var : (Hg * Wg, B) ndarray
-        Squared gauge OV norms and mean measurement variances over ``lights``.
-    resolution : (Hg * Wg, B) ndarray
-        h^2 of each gauge pixel (:func:`table_resolution`).
+    group : MatchedGroup
+        The matched pixels, their bands and lights, and their matches.
+    gauge : GaugeOverLights
+        The gauge over those lights.
     model : NoiseModel
         Of the scene's measurements.
 
@@ -117,15 +156,14 @@ def match_residual(scene_ov, ys, xs, bands, lights, rows, gauge_ov, gauge_norm2,
     """
     from . import _pixel_kernels
 
-    n = len(ys)
+    n = len(group.ys)
     residual = np.empty(n, dtype=np.float32)
     distance = np.empty(n, dtype=np.float32)
-    _pixel_kernels.group_residuals(
-        scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
-        np.asarray(bands, np.int64), np.asarray(lights, np.int64), np.asarray(rows, np.int64),
-        np.ascontiguousarray(gauge_ov, np.float32), np.ascontiguousarray(gauge_norm2),
-        np.ascontiguousarray(gauge_var), np.ascontiguousarray(resolution),
-        *model.kernel_args(), MODEL_FLOOR ** 2, residual, distance)
+    group = MatchedGroup(*(np.asarray(a, np.int64) for a in group))
+    gauge = GaugeOverLights(np.ascontiguousarray(gauge.ov, np.float32),
+                            *(np.ascontiguousarray(a) for a in gauge[1:]))
+    _pixel_kernels.group_residuals(scene_ov, group, gauge, model.kernel_args(),
+                                   MODEL_FLOOR ** 2, residual, distance)
     return residual, distance
 
 

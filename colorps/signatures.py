@@ -80,7 +80,7 @@ class SignatureSet:
 
     @cached_property
     def signatures(self) -> np.ndarray:
-        out = np.empty(self.ov.shape[:2] + (self.bands * self.images,), dtype=np.float32)
+        out = np.empty((*self.ov.shape[:2], self.bands * self.images), dtype=np.float32)
         _pixel_kernels.unit_signatures(self.ov, self.band_valid, out)
         return out
 

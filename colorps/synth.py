@@ -20,7 +20,7 @@ with ground truth of which light they affect (:func:`shadow_maps`,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from typing import Literal
 
 import numpy as np
@@ -29,9 +29,21 @@ from .errors import InputError
 from .geometry import sphere_normals
 
 __all__ = [
-    "Lighting", "SyntheticSurface", "ring_lights", "sphere_surface", "smiley_surface",
-    "render", "BRDFS", "mixed_lights", "write_synthetic", "shadow_maps", "highlight_maps",
-    "LIGHT_LAYOUTS", "FILE_FORMATS", "render_mirror_sphere",
+    "BRDFS",
+    "FILE_FORMATS",
+    "LIGHT_LAYOUTS",
+    "Lighting",
+    "SyntheticCapture",
+    "SyntheticSurface",
+    "highlight_maps",
+    "mixed_lights",
+    "render",
+    "render_mirror_sphere",
+    "ring_lights",
+    "shadow_maps",
+    "smiley_surface",
+    "sphere_surface",
+    "write_synthetic",
 ]
 
 #: Names of the reflectance models :func:`render` knows.
@@ -380,7 +392,7 @@ def smiley_surface(size: int | tuple[int, int] = 256, *, radius: float | None = 
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
     X = (x - cx) / radius
     Y = -(y - cy) / radius
-    mask = X * X + Y * Y < rim * rim
+    mask = rim * rim > X * X + Y * Y
     f, fx, fy = _smiley_slopes(X, Y, relief)
     n = np.stack([-fx, -fy, np.ones_like(f)], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
@@ -434,13 +446,52 @@ LIGHT_LAYOUTS = ("white", "colour", "mixed", "one-sided")
 FILE_FORMATS = ("exr", "png8")
 
 
-def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float = 45.0,
-                    lights: Literal["white", "colour", "mixed", "one-sided"] = "white",
-                    brdf: Literal["lambert", "oren-nayar"] = "lambert", noise: float = 0.0,
-                    gauge_radius: float = 100.0, seed: int = 0, relief: float = 0.12,
-                    cast_shadows: bool = False, gloss: float = 0.0,
-                    file_format: Literal["exr", "png8"] = "exr") -> dict:
+@dataclass(frozen=True)
+class SyntheticCapture:
+    """What :func:`write_synthetic` renders (``colorps synth`` flags of the same names).
+
+    Attributes
+    ----------
+    size : int
+        Scene side (pixels).
+    images : int
+        Number of images m (one light each).
+    theta : float
+        Light angle from the view axis (degrees).
+    lights : {"white", "colour", "mixed", "one-sided"}
+    brdf : {"lambert", "oren-nayar"}
+    noise : float
+        Gaussian noise sigma (0..1 scale).
+    gauge_radius : float
+        Gauge sphere radius (pixels).
+    seed : int
+    relief : float
+        Height of the eyes in face radii (the mouth is 0.8 of it deep).
+    cast_shadows : bool
+        The relief casts shadows.
+    gloss : float
+        Strength of a white highlight the matte gauge does not share.
+    file_format : {"exr", "png8"}
+    """
+
+    size: int = 256
+    images: int = 8
+    theta: float = 45.0
+    lights: Literal["white", "colour", "mixed", "one-sided"] = "white"
+    brdf: Literal["lambert", "oren-nayar"] = "lambert"
+    noise: float = 0.0
+    gauge_radius: float = 100.0
+    seed: int = 0
+    relief: float = 0.12
+    cast_shadows: bool = False
+    gloss: float = 0.0
+    file_format: Literal["exr", "png8"] = "exr"
+
+
+def write_synthetic(out_dir, **settings) -> dict:
     """Render a smiley scene and a sphere gauge to image stacks with ground truth.
+
+    ``settings`` are fields of :class:`SyntheticCapture` (its defaults for the rest).
 
     Writes ``scene_NN`` and ``gauge_NN`` images (``file_format`` "exr": half
     float, linear RGB; "png8": 8-bit sRGB PNG, as a camera's JPEG or PNG would
@@ -466,6 +517,12 @@ def write_synthetic(out_dir, *, size: int = 256, images: int = 8, theta: float =
 
     from .io import srgb_encode, write_image
 
+    try:
+        capture = SyntheticCapture(**settings)
+    except TypeError as error:
+        raise InputError(f"write_synthetic: {error}") from None
+    (size, images, theta, lights, brdf, noise, gauge_radius, seed, relief, cast_shadows, gloss,
+     file_format) = astuple(capture)
     if lights == "white":
         lighting = ring_lights(images, theta)
     elif lights == "colour":

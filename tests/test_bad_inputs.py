@@ -236,7 +236,7 @@ def test_failed_integration_leaves_old_results_byte_identical(capture, tmp_path,
     def failing(*args, **kwargs):
         raise InputError("weights: must be finite and >= 0 inside the mask")
 
-    monkeypatch.setattr(sys.modules["colorps.integrate"], "integrate", failing)
+    monkeypatch.setattr(sys.modules["colorps.pipeline"], "integrate", failing)
     assert main(args_for(capture, out, None, None, "--overwrite")) == 1
     one_line_error(capsys, "weights: must be finite")
     assert any(p.name == "normal.exr" for p in written)  # the maps went first

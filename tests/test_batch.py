@@ -49,8 +49,7 @@ def test_batch_gives_each_capture_its_own_run(captures, tmp_path):
     summary = json.loads((tmp_path / "out" / "batch.json").read_text())
     assert [c["solved"] for c in summary["captures"]] == [o.solved for o in outcomes]
     for spec in specs:  # the same maps as one `colorps reconstruct` each
-        alone = reconstruct_files(spec.scene, spec.gauge, spec.sphere, tmp_path / spec.name,
-                                  mask_path=spec.mask, lights=spec.lights, options=OPTIONS,
+        alone = reconstruct_files(spec.files, tmp_path / spec.name, options=OPTIONS,
                                   progress=False)
         batch_normals = read_image(tmp_path / "out" / spec.name / "normal.exr")[0]
         assert np.array_equal(batch_normals, alone.normals, equal_nan=True)

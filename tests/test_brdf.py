@@ -5,8 +5,10 @@ import pytest
 
 from colorps import Gauge, InputError, Lights, Options, angular_error, light_masks, reconstruct
 from colorps import synth
-from colorps.brdf import BRDF, DIFFUSE_KNOTS, fit_brdf, fit_scene_brdf
-from colorps.noise import NoiseModel
+from colorps.brdf import BRDF, DIFFUSE_KNOTS, fit_brdf
+from colorps.options import FLOAT_DARK_LEVEL
+from colorps.resolve import StackModel, resolve
+from colorps.virtual import fit_scene_brdf
 
 #: A glossy plastic: darker than cosine at grazing incidence, a sharp highlight
 #: that is stronger in blue than in red.
@@ -73,11 +75,12 @@ def test_fitted_virtual_gauge_beats_lambert_on_a_glossy_scene(lights):
     scene = synth.smiley_surface(96)
     stack = _render(scene, lights, GLOSSY, noise=0.002)
     options = Options(read_noise=0.002, gain=0.0)
-    fixed = dict(gauge_noise=NoiseModel(read=0.0, gain=0.0), mask=scene.mask)
+    rendered = resolve(options, gauge=StackModel.rendered(FLOAT_DARK_LEVEL))
 
     def error(brdf):
         gauge = Gauge.virtual(lights, radius=60, bands=3, brdf=brdf)
-        result = reconstruct(stack, gauge.stack, gauge, options, max_residual=None, **fixed)
+        result = reconstruct(stack, gauge.stack, gauge, rendered, max_residual=None,
+                             mask=scene.mask)
         solved = result.solved & scene.mask
         assert solved.sum() > 0.98 * scene.mask.sum()
         return float(np.mean(angular_error(result.normals[solved], scene.normals[solved])))

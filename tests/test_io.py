@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from colorps import ImageReadError, InputError, OutputError
-from colorps.io import (LossyInputWarning, expand_paths, input_levels, read_image, read_stack,
+from colorps.errors import LossyInputWarning
+from colorps.io import (expand_paths, input_levels, read_image, read_stack,
                         srgb_decode, write_image)
 
 

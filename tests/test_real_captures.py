@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from colorps import Gauge, GaugeError, angular_error, find_sphere, reconstruct, synth
-from colorps.matching import Capture, band_snr, weight_levels
+from colorps.matching import band_snr, weight_levels
+from colorps.tables import Capture
 from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
 from colorps.signatures import compute_signatures
 
@@ -249,7 +250,7 @@ def test_8bit_one_sided_capture_with_defaults_and_auto_sphere(tmp_path):
 
 
 def test_pixel_groups_are_the_distinct_rows():
-    from colorps.reconstruct import _group_rows
+    from colorps.matching import _group_rows
 
     rng = np.random.default_rng(5)
     rows = np.column_stack([rng.integers(0, 3, 5000) << 40, rng.integers(0, 8, 5000),
@@ -281,7 +282,7 @@ def test_light_sets_are_kept_within_their_memory_bound(monkeypatch):
     """A capture of many lights tries many light subsets: the gauge over each is
     kept only while the ones used last fit in LIGHT_SET_CACHE_MIB, and one
     recomputed after being dropped is the same."""
-    from colorps import matching
+    from colorps import tables as matching
 
     lights = synth.ring_lights(12, 45)
     gauge_stack, gauge = gauge_for(lights)

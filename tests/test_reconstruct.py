@@ -3,7 +3,7 @@ import pytest
 
 from colorps import (BucketGrid, Gauge, InputError, angular_error, compute_signatures,
                      reconstruct, synth)
-from colorps.reconstruct import GaugeWarning
+from colorps.errors import GaugeWarning
 
 GAUGE_R = 150.0
 
@@ -148,7 +148,7 @@ def test_mismatched_inputs(change, message):
 
 
 def test_tile_order_is_a_permutation_tile_by_tile(rng):
-    from colorps.reconstruct import _tile_order
+    from colorps.matching import _tile_order
 
     pixels = rng.random((70, 45)) < 0.6
     ys, xs = _tile_order(pixels, tile=16)

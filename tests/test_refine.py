@@ -93,13 +93,13 @@ def test_kernel_noise_matches_the_noise_model(model):
     NoiseModel.sigma."""
     from colorps import _refine_kernels
     from colorps.noise import NoiseModel
-    from colorps.refine import noise_arrays
+    from colorps.refine import noise_tables
 
     noise = NoiseModel(**model)
     other = NoiseModel(read=0.3, gain=0.1, pixel_type="float")
     values = np.concatenate([np.linspace(0.0, 1.0, 257), np.exp2(np.arange(-20.0, 4.0))])
     for row, models in ((0, (noise, other)), (1, (other, noise))):
-        arrays, levels, table = noise_arrays(*models)
+        arrays, levels, table = noise_tables(*models)
         kernel = np.array([_refine_kernels._model_variance(v, arrays, levels, table, row)
                            for v in values])
         np.testing.assert_allclose(np.sqrt(kernel), noise.sigma(values), rtol=1e-6,

@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from colorps import Gauge, ImageReadError, Reason, angular_error, reconstruct, synth
 from colorps.cli import main
 from tests.conftest import long_run_command
-from colorps.io import LossyInputWarning, read_image, write_image
+from colorps.errors import LossyInputWarning
+from colorps.io import read_image, write_image
 
 GAUGE_R = 120.0
 

@@ -141,3 +141,136 @@ def test_demo_runs_from_any_folder(tmp_path, monkeypatch, capsys):
     median = float(text.split("median ")[1].split(",")[0])
     assert median < 0.5  # degrees, against the sample's ground truth
     assert (tmp_path / "demo-out" / "normal.exr").exists()
+
+
+# ---------------------------------------------------------------- the house
+def _package_modules():
+    """{module name: path} of every colorps module."""
+    package = ROOT / "colorps"
+    found = {}
+    for path in sorted(package.rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        found[name] = path
+    return found
+
+
+def _imports(modules):
+    """{module: set of colorps modules it imports}, at any depth of its code
+    (function-level imports count: a circle through them is still a circle)."""
+    import ast
+
+    graph = {}
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        graph[name] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                base = package.split(".")[:len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+                for candidate in [target] + [f"{target}.{a.name}" for a in node.names]:
+                    if candidate in modules and candidate not in (name, "colorps"):
+                        graph[name].add(candidate)
+    return graph
+
+
+def test_no_import_circle():
+    """Every module can be read after the ones it imports: the graph has no cycle."""
+    graph = _imports(_package_modules())
+    done, path = set(), []
+
+    def visit(module):
+        if module in path:
+            raise AssertionError("import circle: " + " -> ".join(path[path.index(module):]
+                                                                 + [module]))
+        if module in done:
+            return
+        path.append(module)
+        for target in sorted(graph[module]):
+            visit(target)
+        path.pop()
+        done.add(module)
+
+    for module in sorted(graph):
+        visit(module)
+
+
+#: Compiled kernels (private ``_*_kernels.py``) are exempt: their data are
+#: grouped in named tuples at the public entry points, their inner functions
+#: take scalars for speed. So is the CLI's argument parser.
+EXEMPT_FUNCTIONS = {"colorps.cli.build_parser", "colorps.cli._add_options"}
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 80  # of code: the docstring does not count
+MAX_PARAMETERS = 10
+
+
+def _is_kernel_module(name):
+    return name.rsplit(".", 1)[-1].endswith("_kernels")
+
+
+def test_modules_and_functions_stay_small():
+    import ast
+
+    too_long, too_many = [], []
+    for name, path in _package_modules().items():
+        if _is_kernel_module(name):
+            continue
+        text = path.read_text()
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            too_long.append(f"{name}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text)):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            if f"{name}.{node.name}" in EXEMPT_FUNCTIONS:
+                continue
+            first = node.body[0]
+            docstring = (first.end_lineno - first.lineno + 1
+                         if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant)
+                         and isinstance(first.value.value, str) else 0)
+            lines = node.end_lineno - node.lineno + 1 - docstring
+            args = node.args
+            count = (len(args.posonlyargs) + len(args.args) + len(args.kwonlyargs)
+                     + bool(args.vararg) + bool(args.kwarg))
+            if args.args and args.args[0].arg in ("self", "cls"):
+                count -= 1
+            if lines > MAX_FUNCTION_LINES:
+                too_long.append(f"{name}.{node.name}: {lines} lines of code")
+            if count > MAX_PARAMETERS:
+                too_many.append(f"{name}.{node.name}: {count} parameters")
+    assert not too_long and not too_many, too_long + too_many
+
+
+def test_every_warning_is_a_colorps_warning():
+    """One base class: ``warnings.simplefilter("ignore", ColorPSWarning)`` silences
+    all of colorps's warnings and none of anyone else's."""
+    import ast
+
+    offenders = []
+    for name, path in _package_modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and any(
+                    getattr(base, "id", "").endswith("Warning") for base in node.bases):
+                cls = getattr(__import__(name, fromlist=["_"]), node.name)
+                if not issubclass(cls, colorps.ColorPSWarning):
+                    offenders.append(f"{name}.{node.name}")
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "warn":
+                category = node.args[1] if len(node.args) > 1 else None
+                if isinstance(category, ast.Name) and category.id in ("UserWarning",
+                                                                      "RuntimeWarning"):
+                    offenders.append(f"{name}: warns with {category.id}")
+    assert not offenders, offenders
+
+
+def test_the_package_is_ruff_clean():
+    """``ruff check colorps`` with the rules of pyproject.toml ([tool.ruff.lint]:
+    numpy docstrings for the public API among them) finds nothing."""
+    import shutil
+    import subprocess
+    import sys
+
+    ruff = shutil.which("ruff", path=str(Path(sys.executable).parent)) or shutil.which("ruff")
+    if ruff is None:
+        pytest.skip("ruff is not installed (pip install -e '.[test]' brings it)")
+    found = subprocess.run([ruff, "check", "--no-cache", "colorps"], cwd=ROOT,
+                           capture_output=True, text=True)
+    assert found.returncode == 0, found.stdout[-3000:]

@@ -8,7 +8,8 @@ import pytest
 from colorps import Gauge, reconstruct, synth
 from colorps.errors import InputError
 from colorps.io import read_image, write_image
-from colorps.tiles import StackFiles, reconstruct_tiled, tile_rows
+from colorps.memory import tile_rows
+from colorps.tiles import StackFiles, reconstruct_tiled
 
 MAPS = ("normals", "albedo", "quality", "uncertainty", "solved", "reason", "bands_used",
         "dropped_lights")
@@ -56,16 +57,17 @@ def test_model_scale_from_a_lattice_of_pixels_tiled_or_not(messy, monkeypatch):
     pixels, so the same scale and maps, whether or not the scene is tiled."""
     import sys
 
-    from colorps.reconstruct import measured_model_scale, model_scale_pixels
+    from colorps.matching import measured_model_scale, model_scale_pixels
+    from colorps.reconstruct import first_residuals
 
-    recon = sys.modules["colorps.reconstruct"]
+    matching = sys.modules["colorps.matching"]
     scene, gauge_stack, gauge, mask = messy
-    monkeypatch.setattr(recon, "MODEL_SCALE_PIXELS", mask.sum() // 5)  # step 2
+    monkeypatch.setattr(matching, "MODEL_SCALE_PIXELS", mask.sum() // 5)  # step 2
     picked = model_scale_pixels(mask)
     assert picked.sum() < mask.sum() / 3 and not picked[1::2].any()
     assert np.array_equal(model_scale_pixels(mask[7:], step=2, first_row=7), picked[7:])
     whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
-    first = recon.first_residuals(scene, gauge_stack, gauge, mask=picked)
+    first = first_residuals(scene, gauge_stack, gauge, mask=picked)
     assert whole.stats.model_scale == measured_model_scale(first)
     for tile in (7, 30):
         assert_same(whole, reconstruct_tiled(scene, gauge_stack, gauge, tile=tile, mask=mask))
@@ -74,7 +76,7 @@ def test_model_scale_from_a_lattice_of_pixels_tiled_or_not(messy, monkeypatch):
 def test_gauge_tables_build_each_grid_once_for_all_tiles(messy):
     import pickle
 
-    from colorps.matching import GaugeTables
+    from colorps.tables import GaugeTables
 
     scene, gauge_stack, gauge, mask = messy
     whole = reconstruct(scene, gauge_stack, gauge, mask=mask)
@@ -153,7 +155,7 @@ def test_dask_local_cluster_gives_the_untiled_maps(messy, tmp_path):
                                        gauge, tile=20, mask=mask, client=client)
         assert len(client.scheduler_info()["workers"]) == 2
         # --memory-limit auto inside a worker: no more than the worker's own limit.
-        from colorps.tiles import available_memory_bytes
+        from colorps.memory import available_memory_bytes
 
         worker_limit = min(w["memory_limit"] for w in client.scheduler_info()["workers"].values())
         assert 0 < client.submit(available_memory_bytes, pure=False).result() <= worker_limit
@@ -174,6 +176,7 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
     from colorps import Options
     from colorps.io import read_image
     from colorps.outputs import TILED_EXR_SIDE
+    from colorps.inputs import CaptureFiles
     from colorps.pipeline import reconstruct_files
 
     scene, gauge_stack, gauge, mask = messy
@@ -181,11 +184,10 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
         write_image(tmp_path / f"scene_{k}.exr", scene[k])
         write_image(tmp_path / f"gauge_{k}.exr", gauge_stack[k])
     write_image(tmp_path / "mask.png", mask.astype(np.float32), dtype="uint8")
-    args = (str(tmp_path / "scene_*.exr"), str(tmp_path / "gauge_*.exr"), (45, 45, 42))
-    reconstruct_files(*args, tmp_path / "whole", mask_path=tmp_path / "mask.png",
-                      progress=False)
-    reconstruct_files(*args, tmp_path / "tiled", mask_path=tmp_path / "mask.png",
-                      options=Options(tile=16), progress=False)
+    files = CaptureFiles(str(tmp_path / "scene_*.exr"), gauge=str(tmp_path / "gauge_*.exr"),
+                         sphere=(45, 45, 42), mask=tmp_path / "mask.png")
+    reconstruct_files(files, tmp_path / "whole", progress=False)
+    reconstruct_files(files, tmp_path / "tiled", options=Options(tile=16), progress=False)
     for name in ("normal", "albedo", "quality", "uncertainty", "height", "lights"):
         whole = read_image(tmp_path / "whole" / f"{name}.exr")[0]
         tiled = read_image(tmp_path / "tiled" / f"{name}.exr")[0]
@@ -194,13 +196,13 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
         assert exr_tile_side(tmp_path / "tiled" / f"{name}.exr") == TILED_EXR_SIDE, name
         assert exr_tile_side(tmp_path / "whole" / f"{name}.exr") == 0, name
     with pytest.raises(InputError, match="--tile"):
-        reconstruct_files(*args, tmp_path / "huge", options=Options(tile=16, max_input_gib=1e-6),
+        reconstruct_files(files, tmp_path / "huge", options=Options(tile=16, max_input_gib=1e-6),
                           progress=False)
 
 
 def test_memory_limit_chooses_the_tile_rows():
-    from colorps.matching import TABLE_CACHE_MIB
-    from colorps.tiles import (BASE_MIB, MAP_BYTES, MIN_TILE_ROWS, TILE_FIXED_MIB,
+    from colorps.tables import TABLE_CACHE_MIB
+    from colorps.memory import (BASE_MIB, MAP_BYTES, MIN_TILE_ROWS, TILE_FIXED_MIB,
                                WORKING_BYTES, rows_for_memory)
 
     shape = (8, 4096, 4096, 3)
@@ -229,8 +231,8 @@ def test_memory_limit_on_the_command_line(tmp_path, capsys):
     report = json.loads((tmp_path / "ok" / "report.json").read_text())
     assert report["options"]["memory_limit_gib"] == 4 and report["options"]["tile"] is None
     # A limit just above 20 rows' worth tiles the run, with the untiled maps.
-    from colorps.matching import TABLE_CACHE_MIB
-    from colorps.tiles import BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES
+    from colorps.tables import TABLE_CACHE_MIB
+    from colorps.memory import BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES
 
     limit = ((BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
              + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48) / 2 ** 30
@@ -245,11 +247,11 @@ def test_memory_limit_auto_tiles_a_capture_larger_than_the_memory(tmp_path, caps
                                                                    monkeypatch):
     import psutil
 
-    import colorps.tiles
+    import colorps.memory
     from colorps.cli import main
-    from colorps.matching import TABLE_CACHE_MIB
-    from colorps.options import AUTO_MEMORY_FRACTION
-    from colorps.tiles import (BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES,
+    from colorps.tables import TABLE_CACHE_MIB
+    from colorps.memory import AUTO_MEMORY_FRACTION
+    from colorps.memory import (BASE_MIB, MAP_BYTES, TILE_FIXED_MIB, WORKING_BYTES,
                                available_memory_bytes)
 
     assert 0 < available_memory_bytes() <= psutil.virtual_memory().total
@@ -264,7 +266,7 @@ def test_memory_limit_auto_tiles_a_capture_larger_than_the_memory(tmp_path, caps
     # A machine with memory for 20 rows of this capture (the default is "auto").
     limit = ((BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + MAP_BYTES * 48 * 48
              + 20.5 * WORKING_BYTES * 4 * 6 * 3 * 48)
-    monkeypatch.setattr(colorps.tiles, "available_memory_bytes",
+    monkeypatch.setattr(colorps.memory, "available_memory_bytes",
                         lambda: limit / AUTO_MEMORY_FRACTION)
     capsys.readouterr()
     loud = [a for a in args if a != "--quiet"]
@@ -281,7 +283,7 @@ def test_memory_limit_auto_tiles_a_capture_larger_than_the_memory(tmp_path, caps
         assert np.array_equal(read_image(tmp_path / "auto" / f"{name}.exr")[0],
                               read_image(tmp_path / "whole" / f"{name}.exr")[0], equal_nan=True)
     # A machine too small even for 16-row tiles: refused before any output, saying why.
-    monkeypatch.setattr(colorps.tiles, "available_memory_bytes", lambda: 2 ** 28)
+    monkeypatch.setattr(colorps.memory, "available_memory_bytes", lambda: 2 ** 28)
     assert main(args + ["--out", str(tmp_path / "small")]) == 1
     err = capsys.readouterr().err
     assert "--memory-limit auto (0.2 GiB: 80% of the 0.2 GiB available)" in err
@@ -298,8 +300,8 @@ def _cgroup(folder, **files):
 def test_cgroup_limits_bound_the_available_memory(tmp_path, monkeypatch):
     """A container's or cluster job's memory limit counts, at any level of its
     cgroup tree, in cgroup v2 and v1 alike; no limit leaves psutil's figure."""
-    import colorps.tiles
-    from colorps.tiles import available_memory_bytes, cgroup_available_bytes
+    import colorps.memory
+    from colorps.memory import available_memory_bytes, cgroup_available_bytes
 
     gib = 2 ** 30
     # v2, a SLURM-like nested job: the limit is set on the job, the step has none.
@@ -330,5 +332,5 @@ def test_cgroup_limits_bound_the_available_memory(tmp_path, monkeypatch):
     _cgroup(inside, memory_current="garbage")
     assert cgroup_available_bytes(inside, "0::/\n") is None
     # The least of psutil's and the cgroups' figure is what "auto" plans with.
-    monkeypatch.setattr(colorps.tiles, "cgroup_available_bytes", lambda: 2 ** 20)
+    monkeypatch.setattr(colorps.memory, "cgroup_available_bytes", lambda: 2 ** 20)
     assert available_memory_bytes() == 2 ** 20

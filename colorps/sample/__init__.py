@@ -17,7 +17,7 @@ from ..errors import InputError
 from ..geometry import angular_error
 from ..options import Options
 
-__all__ = ["sample_folder", "run_demo", "DemoReport"]
+__all__ = ["DemoReport", "run_demo", "sample_folder"]
 
 
 def sample_folder() -> Path:
@@ -85,6 +85,7 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
     -------
     (Reconstruction, DemoReport)
     """
+    from ..inputs import CaptureFiles
     from ..io import read_image, read_mask
     from ..pipeline import reconstruct_files
 
@@ -97,12 +98,11 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
     g = info["gauge_sphere"]
     mask = folder / "mask.png"
     ext = {"exr": "exr", "png8": "png"}[info.get("file_format", "exr")]
-    result = reconstruct_files(str(folder / f"scene_*.{ext}"), str(folder / f"gauge_*.{ext}"),
-                               (g["cx"], g["cy"], g["r"]), out,
-                               gauge_albedo=info["gauge_albedo"],
-                               mask_path=mask if mask.exists() else None,
-                               options=options or Options(mode=mode), overwrite=overwrite,
-                               progress=progress)
+    inputs = CaptureFiles(str(folder / f"scene_*.{ext}"), gauge=str(folder / f"gauge_*.{ext}"),
+                          sphere=(g["cx"], g["cy"], g["r"]), gauge_albedo=info["gauge_albedo"],
+                          mask=mask if mask.exists() else None)
+    result = reconstruct_files(inputs, out, options=options or Options(mode=mode),
+                               overwrite=overwrite, progress=progress)
     truth_n, _ = read_image(folder / "truth_normal.exr")
     truth_a, _ = read_image(folder / "truth_albedo.exr")
     truth_mask = read_mask(folder / "truth_mask.png", truth_n.shape[:2])

@@ -1,0 +1,316 @@
+"""The gauge's tables: the gauge over a subset of lights and bands, as a table to match.
+
+A :class:`Capture` holds the scene's and the gauge's observation vectors and
+the noise model; :meth:`Capture.match` builds the weighted table of one group
+(usable bands, band weights, lights: see :mod:`colorps.matching` for the
+policy that forms the groups), finds every query's exact nearest entry with a
+bucket grid or, for a few pixels, by brute force (:func:`nearest`), and
+scores each match in noise units (:mod:`colorps.residuals`).
+:class:`GaugeTables` keeps the grids for the other tiles of one capture.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _pixel_kernels
+from ._config import AUTO_N_SAMPLE
+from .errors import InputError
+from .grid import BucketGrid
+from .noise import NoiseModel
+from .residuals import GaugeOverLights, MatchedGroup, match_residual, table_resolution
+
+__all__ = ["Capture", "GaugeTables", "GroupResult", "nearest"]
+
+# ---------------------------------------------------------------- tuning
+#: A table needs at least this many gauge entries; a group with fewer is not matched.
+MIN_TABLE_ENTRIES = 3
+#: Groups of fewer pixels are matched by brute force instead of a grid.
+BRUTE_FORCE_PIXELS = 128
+#: Brute force works on blocks of about this many distances (queries x table rows).
+BRUTE_FORCE_BLOCK = 1 << 22
+#: GaugeTables keeps grids up to this many MiB (a 30k-entry colour grid of 8
+#: images takes about 16): the ones first built, which are the largest groups'.
+TABLE_CACHE_MIB = 192
+#: A capture keeps the gauge over the light subsets it matched last up to this many
+#: MiB (a 201 x 201 gauge of RGB images takes 2.5 MiB a subset).
+LIGHT_SET_CACHE_MIB = 256
+
+
+class GaugeTables:
+    """Bucket grids of one gauge's tables, kept to be used again.
+
+    The tiles of a capture match against the same tables (same gauge, options
+    and model): with one GaugeTables passed to each tile's
+    :func:`colorps.reconstruct`, every table's grid is built once instead of
+    once per tile (in each Dask worker: a scattered copy fills on its own).
+    Grids are kept while they fit in ``max_mib``; the first built stay (a
+    tile matches its largest groups first, so those are the ones kept).
+    The gauge they were built for is checked by a fingerprint of its
+    observation vectors and settings: another gauge raises an InputError.
+    """
+
+    def __init__(self, max_mib: float = TABLE_CACHE_MIB) -> None:
+        import threading
+
+        self.max_bytes = int(max_mib * 2 ** 20)
+        self.bytes = 0
+        self.reused = 0
+        self._grids: dict = {}
+        self._fingerprint = None
+        self._lock = threading.Lock()
+
+    def attach(self, fingerprint: bytes) -> None:
+        """Check (or, the first time, record) the gauge's fingerprint."""
+        with self._lock:
+            if self._fingerprint is None:
+                self._fingerprint = fingerprint
+            elif fingerprint != self._fingerprint:
+                raise InputError("tables: these GaugeTables were built for another gauge "
+                                 "or other options; use one per capture and settings")
+
+    def get(self, key):
+        grid = self._grids.get(key)
+        if grid is not None:
+            self.reused += 1
+        return grid
+
+    def keep(self, key, grid: BucketGrid) -> None:
+        size = grid.nbytes
+        with self._lock:
+            if key not in self._grids and self.bytes + size <= self.max_bytes:
+                self._grids[key] = grid
+                self.bytes += size
+
+    def __getstate__(self) -> dict:  # sent to Dask workers empty, without the lock
+        return dict(max_bytes=self.max_bytes, fingerprint=self._fingerprint)
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["max_bytes"] / 2 ** 20)
+        self._fingerprint = state["fingerprint"]
+
+
+def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None,
+            sample=None, tables: GaugeTables | None = None, key=None
+            ) -> tuple[np.ndarray, float, float, int | None]:
+    """Exact nearest table row of each query; (rows, summed b, summed d, grid N or None).
+
+    With ``tables`` the grid of ``key`` is taken from it when it holds one,
+    and a grid built is offered to it."""
+    grid = None if tables is None else tables.get(key)
+    if grid is None and len(queries) < BRUTE_FORCE_PIXELS:
+        t = table.astype(np.float64)
+        t2 = np.einsum("ij,ij->i", t, t)
+        rows = np.empty(len(queries), dtype=np.int64)
+        # Blocks of queries x table rows distances (not x dimensions too: with 96
+        # lights that left one query per block, a matrix-vector product each).
+        step = max(1, BRUTE_FORCE_BLOCK // max(1, len(table)))
+        for a in range(0, len(queries), step):
+            q = queries[a:a + step].astype(np.float64)
+            d2 = t2[None, :] - 2.0 * q @ t.T
+            rows[a:a + step] = np.argmin(d2, axis=1)
+        return rows, float(len(queries)), float(len(queries) * len(table)), None
+    if grid is None:
+        grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
+        if tables is not None:
+            tables.keep(key, grid)
+    rows, _, st = grid.query(queries, threads=threads, return_stats=True)
+    return (rows, float(st.buckets_per_query.sum()), float(st.tests_per_query.sum()),
+            grid.n)
+
+
+@dataclass
+class _LightSet:
+    """The gauge over one subset of lights: what tables and residuals need.
+
+    Its unit signatures are the gauge's OVs over ``lights`` divided by
+    sqrt(norm2), computed where the kernels read them (stored, they took
+    46 MiB a subset for a 201 x 201 gauge of 96 RGB images).
+    """
+
+    gauge_ov: np.ndarray    # (Hg, Wg, B, m) float32, every light (shared, not owned)
+    lights: np.ndarray      # (m',) int64
+    norm2: np.ndarray       # (Hg, Wg, B)
+    variance: np.ndarray    # (Hg, Wg, B)
+    usable: np.ndarray      # (Hg, Wg, B) bool
+    #: (Hg * Wg, B) h^2 (residuals.table_resolution), computed at the pixels
+    #: matched so far (NaN elsewhere): a subset's groups match few of them.
+    resolution: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        hg, wg, n_bands = self.usable.shape
+        self.resolution = np.full((hg * wg, n_bands), np.nan)
+
+    def resolution_at(self, rows: np.ndarray) -> np.ndarray:
+        """The whole (Hg * Wg, B) h^2 array, computed at least at ``rows``."""
+        todo = rows[np.isnan(self.resolution[rows, 0])]
+        if len(todo):
+            todo = np.arange(len(self.resolution)) if len(todo) > len(self.resolution) \
+                else np.unique(todo)
+            table_resolution(self.gauge_ov, self.usable.all(axis=-1), todo,
+                             out=self.resolution, lights=self.lights, norm2=self.norm2)
+        return self.resolution
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes this light set owns (not the shared gauge OVs)."""
+        return sum(a.nbytes for a in (self.norm2, self.variance, self.resolution,
+                                      self.usable))
+
+
+@dataclass(frozen=True)
+class GroupResult:
+    """One group's matches: gauge pixel (flat index, -1: no table) and residual."""
+
+    rows: np.ndarray
+    residual: np.ndarray
+    distance: np.ndarray  # plain signature distance per band (unweighted)
+    table_size: int
+    grid_n: int | None
+    buckets: float
+    tests: float
+    seconds_grid: float
+    seconds_lookup: float
+
+
+@dataclass
+class Capture:
+    """Scene and gauge observation vectors, per band, with the noise model.
+
+    Attributes
+    ----------
+    scene_ov : (H, W, B, m) ndarray of float32
+        Scene OVs of the signature bands (0 where a band is unusable).
+    scene_valid : (H, W, B) ndarray of bool
+    scene_clipped : (H, W, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`) of the images with a clipped
+        measurement at a scene pixel.
+    scene_invalid : (H, W) ndarray of bool
+        Scene pixels with an invalid (NaN, Inf, negative) measurement.
+    gauge_ov : (Hg, Wg, B, m) ndarray of float32
+    gauge_valid : (Hg, Wg, B) ndarray of bool
+        Usable bands of gauge pixels inside the gauge mask.
+    gauge_normals : (Hg * Wg, 3) ndarray
+    model : NoiseModel
+        Of the scene's measurements.
+    min_norm : float
+        Smallest usable OV norm over any light subset.
+    gauge_model : NoiseModel, optional
+        Of the gauge's measurements, when its files differ from the scene's.
+    tables : GaugeTables, optional
+        Grids kept from other pieces of the same capture (checked against
+        :meth:`gauge_fingerprint`), and offered the ones built here.
+    """
+
+    scene_ov: np.ndarray
+    scene_valid: np.ndarray
+    gauge_ov: np.ndarray
+    gauge_valid: np.ndarray
+    gauge_normals: np.ndarray
+    model: NoiseModel
+    min_norm: float
+    gauge_model: NoiseModel | None = None
+    scene_clipped: np.ndarray | None = None
+    scene_invalid: np.ndarray | None = None
+    tables: GaugeTables | None = None
+    _light_sets: OrderedDict = field(default_factory=OrderedDict)
+    _gauge_variance: np.ndarray | None = None
+
+    @property
+    def images(self) -> int:
+        return self.scene_ov.shape[-1]
+
+    @property
+    def bands(self) -> int:
+        return self.scene_ov.shape[-2]
+
+    def __post_init__(self) -> None:
+        self.gauge_ov = np.ascontiguousarray(self.gauge_ov)  # the kernels read it often
+        if self.tables is not None:
+            self.tables.attach(self.gauge_fingerprint())
+
+    def gauge_fingerprint(self) -> bytes:
+        """A digest of everything the tables are made of: the gauge's OVs, its
+        usable bands and the smallest usable norm."""
+        import hashlib
+
+        digest = hashlib.blake2b(np.ascontiguousarray(self.gauge_ov).tobytes())
+        digest.update(np.ascontiguousarray(self.gauge_valid).tobytes())
+        digest.update(repr((self.gauge_ov.shape, float(self.min_norm))).encode())
+        return digest.digest()
+
+    def light_set(self, lights: tuple[int, ...]) -> _LightSet:
+        """The gauge restricted to ``lights``, kept while the light sets used last
+        fit in LIGHT_SET_CACHE_MIB (the set of every light always stays)."""
+        if lights in self._light_sets:
+            self._light_sets.move_to_end(lights)
+        else:
+            if self._gauge_variance is None:  # per measurement, computed once
+                model = self.gauge_model or self.model
+                self._gauge_variance = np.ascontiguousarray(model.sigma(self.gauge_ov) ** 2)
+            hg, wg, n_bands, _ = self.gauge_ov.shape
+            norm2 = np.empty((hg, wg, n_bands))
+            variance = np.empty((hg, wg, n_bands), dtype=np.float32)
+            usable = np.empty((hg, wg, n_bands), dtype=bool)
+            light_index = np.array(lights, dtype=np.int64)
+            _pixel_kernels.light_set(self.gauge_ov, light_index,
+                                     np.ascontiguousarray(self.gauge_valid),
+                                     float(self.min_norm), self._gauge_variance, norm2,
+                                     variance, usable)
+            self._light_sets[lights] = _LightSet(gauge_ov=self.gauge_ov, lights=light_index,
+                                                 norm2=norm2, variance=variance, usable=usable)
+            self._forget_light_sets(keep=lights)
+        return self._light_sets[lights]
+
+    def _forget_light_sets(self, keep: tuple[int, ...]) -> None:
+        """Drop the least recently used light sets beyond LIGHT_SET_CACHE_MIB."""
+        every = tuple(range(self.images))
+        total = sum(s.nbytes for s in self._light_sets.values())
+        for lights in list(self._light_sets):
+            if total <= LIGHT_SET_CACHE_MIB * 2 ** 20:
+                break
+            if lights not in (keep, every):
+                total -= self._light_sets.pop(lights).nbytes
+
+    def match(self, ys: np.ndarray, xs: np.ndarray, bands: tuple[int, ...],
+              levels: tuple[int, ...], lights: tuple[int, ...], *, grid_n=None,
+              threads=None, sample_size: int = AUTO_N_SAMPLE) -> GroupResult:
+        """Match pixels (ys, xs) on ``bands`` weighted 2^levels over ``lights``."""
+        t0 = time.perf_counter()
+        gauge = self.light_set(lights)
+        band_list = list(bands)
+        table_px = gauge.usable[..., band_list].all(axis=-1)
+        scale = np.exp2(np.array(levels, dtype=np.float32))[:, None]
+        n_rows = len(ys)
+        if table_px.sum() < MIN_TABLE_ENTRIES:
+            nothing = np.full(n_rows, np.nan, np.float32)
+            return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
+                               0.0, time.perf_counter() - t0, 0.0)
+        band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
+        table_rows = np.flatnonzero(table_px)
+        table = np.empty((len(table_rows), len(bands) * len(lights)), dtype=np.float32)
+        _pixel_kernels.group_table(self.gauge_ov, light_index, gauge.norm2, table_rows,
+                                   band_index, scale[:, 0], table)
+        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
+        queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
+        _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
+                                     scale[:, 0], queries)
+        sample = queries[:: max(1, n_rows // sample_size)]
+        t_grid = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        found, b_sum, d_sum, n = nearest(table, queries, grid_n=grid_n, threads=threads,
+                                         sample=sample, tables=self.tables,
+                                         key=(bands, levels, lights, grid_n))
+        rows = table_rows[found]
+        t_lookup = time.perf_counter() - t0
+        residual, distance = match_residual(
+            self.scene_ov, MatchedGroup(ys, xs, band_index, light_index, rows),
+            GaugeOverLights(self.gauge_ov, gauge.norm2.reshape(-1, self.bands),
+                            gauge.variance.reshape(-1, self.bands), gauge.resolution_at(rows)),
+            self.model)
+        return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
+                           t_grid, t_lookup)
