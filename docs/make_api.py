@@ -12,11 +12,13 @@ import sys
 from pathlib import Path
 
 #: Public modules, in the order a reader meets them (docs/architecture.md).
-MODULES = ("colorps", "colorps.options", "colorps.reconstruct", "colorps.reasons",
-           "colorps.gauge", "colorps.signatures", "colorps.grid", "colorps.geometry",
-           "colorps.integrate", "colorps.io", "colorps.outputs", "colorps.pipeline",
-           "colorps.figures", "colorps.mesh", "colorps.synth", "colorps.sample",
-           "colorps.errors", "colorps.cli")
+MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct",
+           "colorps.results", "colorps.matching", "colorps.tables", "colorps.reasons",
+           "colorps.gauge", "colorps.virtual", "colorps.brdf", "colorps.lights",
+           "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate",
+           "colorps.io", "colorps.inputs", "colorps.outputs", "colorps.pipeline",
+           "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.mesh",
+           "colorps.synth", "colorps.sample", "colorps.errors", "colorps.cli")
 HERE = Path(__file__).resolve().parent
 
 
