@@ -199,6 +199,19 @@ def check_stack_files(paths: Sequence, *, name: str = "stack",
     return infos
 
 
+def _check_distinct(paths: Sequence[Path], name: str) -> None:
+    """Refuse a stack that names one file twice (each image is one light), by
+    resolved path, so ``a/x.png`` and ``./a/x.png`` or a link count alike."""
+    seen = {}
+    for k, path in enumerate(paths):
+        key = path.resolve()
+        if key in seen:
+            raise InputError(f"{path}: given twice in the {name} stack (images "
+                             f"{seen[key] + 1} and {k + 1} of {len(paths)}); each image "
+                             "must be taken under its own light")
+        seen[key] = k
+
+
 def relative_exposures(scene: Sequence[ImageInfo],
                        gauge: Sequence[ImageInfo]) -> np.ndarray | None:
     """Each scene image's exposure over its gauge image's, from their headers.
@@ -542,6 +555,8 @@ def expand_paths(patterns: str | Sequence[str], *, name: str = "images") -> list
     ------
     ImageReadError
         A glob that matches nothing, a missing list file, or no paths at all.
+    InputError
+        One file named twice (each image of a stack is one light).
     """
     from natsort import natsorted
 
@@ -572,4 +587,5 @@ def expand_paths(patterns: str | Sequence[str], *, name: str = "images") -> list
     for path in paths:
         if not path.exists():
             raise ImageReadError(f"{path}: no such file")
+    _check_distinct(paths, name)
     return paths

@@ -389,3 +389,21 @@ def test_exposures_of_scene_and_gauge_are_checked(capture, tmp_path, capsys):
     assert main(args_for(capture, tmp_path / "plain", None, None, "--no-height")) == 0
     report = json.loads((tmp_path / "plain" / "report.json").read_text())
     assert report["exposure_scene_over_gauge"] is None
+
+
+@pytest.mark.parametrize("stack", ["scene", "gauge"])
+def test_a_file_given_twice_is_refused_naming_it(capture, tmp_path, capsys, stack):
+    """A stack that lists one image twice (a typo in a list file, a glob and a
+    path that overlap) is refused before any work, naming the file and both
+    positions; nothing is written."""
+    folder, _ = capture
+    listed = [folder / f"{stack}_0{k}.exr" for k in (0, 1, 2)]
+    listed.insert(2, Path(str(folder) + "/./" + f"{stack}_01.exr"))  # the same file
+    (tmp_path / "list.txt").write_text("\n".join(str(p) for p in listed))
+    out = tmp_path / "out"
+    given = {stack: "@" + str(tmp_path / "list.txt")}
+    assert main(args_for(capture, out, given.get("scene"), given.get("gauge"))) == 1
+    line = one_line_error(capsys, f"{stack}_01.exr", f"given twice in the {stack} stack",
+                          "images 2 and 3 of 4")
+    assert "Traceback" not in line
+    assert not out.exists()
