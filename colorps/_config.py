@@ -14,3 +14,6 @@ FASTMATH = {"reassoc", "contract"}
 #: ``grid_n="auto"`` times its candidate grids on at most this many of the
 #: queries (a regular sample of a group's, then a random one of those).
 AUTO_N_SAMPLE = 4000
+#: Fewest lights a pixel may be matched on (light subsets, shadows): three
+#: directions fix a normal.
+MIN_LIGHTS = 3

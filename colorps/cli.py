@@ -149,10 +149,11 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="colour mode: weigh every band alike, however dark")
     parser.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
                         help="do not re-solve shadowed or highlighted pixels from the "
-                             "remaining lights")
+                             "lights that reach them")
     parser.add_argument("--max-dropped-lights", type=_non_negative_int,
                         default=_DEFAULTS.max_dropped_lights, metavar="K",
-                        help="most lights dropped from one pixel (at least 3 remain)")
+                        help="rounds of table-based light subsets (up to 16 lights) before "
+                             "the per-pixel fit, one light each")
     parser.add_argument("--max-residual", type=_or_words(_positive_float, none=None),
                         default=_DEFAULTS.max_residual, metavar="R|none",
                         help="largest match residual of a solved pixel, in units of the "

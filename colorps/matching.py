@@ -29,10 +29,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _pixel_kernels, light_masks
-from ._config import AUTO_N_SAMPLE
+from ._config import AUTO_N_SAMPLE, MIN_LIGHTS
 from .noise import NoiseModel
 from .options import Options
 from .residuals import light_residuals
+from .shadows import solve_shadowed
 from .tables import Capture, GroupResult
 
 __all__ = [
@@ -64,8 +65,14 @@ MAX_CLIPPED_FRACTION = 0.5
 #: remain, and at most MAX_SUBSET_GROUPS tables are built per round (the
 #: largest groups first).
 SUBSET_TRIGGER = 3.0
+#: Table-based light subsets run on captures of at most this many lights; every
+#: capture then has each remaining pixel above SUBSET_TRIGGER matched on its own
+#: lights (colorps.shadows). With few lights the tables single out one shadowed
+#: light more surely; with many, they are too many and too slow (a 96-light
+#: capture: 22.8 s against 2.1 s for the per-pixel fit alone, at 0.13 and 0.12
+#: degrees; docs/benchmarks.md).
+GREEDY_MAX_LIGHTS = 16
 SUBSET_GAIN = 0.7
-MIN_LIGHTS = 3
 MAX_SUBSET_GROUPS = 128
 #: A pixel tries dropping at most this many of its lights per round: those its
 #: match explains least (largest |per-light residual|). Every light when m is at
@@ -139,7 +146,9 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
         model_scale = measured_model_scale(state.quality[matched & model_scale_pixels(mask)])
     state.quality[matched] /= model_scale
     if options.light_subsets and capture.images >= MIN_LIGHTS + 1:
-        _light_subsets(capture, state, options, model_scale)
+        if capture.images <= GREEDY_MAX_LIGHTS:
+            _light_subsets(capture, state, options, model_scale)
+        solve_shadowed(capture, state, SUBSET_TRIGGER, model_scale)
     return state.result(model_scale)
 
 

@@ -78,10 +78,14 @@ class Options:
         Colour mode: weight each band's signature by its signal-to-noise ratio
         (powers of two), dropping bands far below the brightest one.
     light_subsets : bool
-        Re-solve pixels whose match leaves a few measurements far outside the
-        noise (cast shadows, highlights) from the remaining lights.
+        Re-solve pixels whose match leaves measurements far outside the noise
+        (cast shadows, highlights) from the lights the gauge explains there,
+        any number of them (at least 3 remain; :mod:`colorps.shadows`).
     max_dropped_lights : int
-        At most this many lights are dropped from a pixel; at least 3 remain.
+        Before that, for captures of up to ``matching.GREEDY_MAX_LIGHTS`` lights,
+        up to this many rounds of table-based light subsets, each dropping the
+        one light that helps most (they single out one shadowed light of a few
+        more surely; their tables grow too many with more lights).
     max_residual : float or None
         Largest match residual (``quality``, in units of its expected value
         under the noise model) of a solved pixel; worse matches are "no good

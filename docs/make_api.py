@@ -13,12 +13,14 @@ from pathlib import Path
 
 #: Public modules, in the order a reader meets them (docs/architecture.md).
 MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct",
-           "colorps.results", "colorps.matching", "colorps.tables", "colorps.reasons",
+           "colorps.results", "colorps.matching", "colorps.shadows", "colorps.tables",
+           "colorps.reasons",
            "colorps.gauge", "colorps.virtual", "colorps.brdf", "colorps.lights",
            "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate",
            "colorps.io", "colorps.inputs", "colorps.outputs", "colorps.pipeline",
            "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.mesh",
-           "colorps.synth", "colorps.sample", "colorps.errors", "colorps.cli")
+           "colorps.synth", "colorps.shapes", "colorps.sample", "colorps.errors",
+           "colorps.cli")
 HERE = Path(__file__).resolve().parent
 
 

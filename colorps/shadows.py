@@ -1,0 +1,243 @@
+"""Pixels in shadow under many lights: matched on the lights that reach them.
+
+A pixel in the cast shadow of several lights (a fold of the object, the foot
+of a relief) matches no gauge pixel on all its lights, and the greedy light
+subsets of :mod:`colorps.matching` drop at most ``max_dropped_lights`` of them,
+one table per subset. Here each such pixel gets its own set of lights instead,
+found by a trimmed fit that needs no table:
+
+1. start from the lights that light it: a light whose measurement (per band
+   relative to the band's norm, summed over the matched bands) is under
+   DARK_FRACTION of the pixel's brightest is left out, as is a clipped one;
+2. scan the gauge for the least signature distance over those lights (every
+   COARSE_STEP-th gauge pixel, then every pixel around the best:
+   :func:`colorps._shadow_kernels.masked_search`, exact on that window);
+3. keep the lights the match explains (per-light residual within
+   INLIER_Z noise units, times the model scale, or a change under
+   MINOR_FRACTION of the pixel's brightest measurement): an attached shadow,
+   dark on the gauge too, comes back; a cast shadow or a highlight stays out;
+4. repeat 2-3 (ROUNDS in all), then score the match over the kept lights in
+   noise units (:func:`colorps._shadow_kernels.masked_residuals`, as
+   :mod:`colorps.residuals` defines the residual).
+
+A pixel takes the new match when it explains it better than the one it had
+(a lower residual) and lies inside the table, not on its rim (a rim match may
+stand for a normal beyond the gauge, and dropping the lights it cannot explain
+would hide that); the refinement then goes past the gauge's pixel grid on
+the same lights, and ``lights.exr`` says which were left out. A pixel needs
+at least MIN_LIGHTS lights left (and its bands x (lights - 1) >= 2).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import _shadow_kernels, light_masks
+from ._config import MIN_LIGHTS
+from .residuals import MODEL_FLOOR
+from .tables import Capture
+
+__all__ = ["COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "ROUNDS", "solve_shadowed"]
+
+# ---------------------------------------------------------------- tuning
+#: A light is taken as not reaching a pixel, to start with, when the pixel's
+#: measurement under it is below this fraction of its brightest.
+DARK_FRACTION = 0.2
+#: A light is kept when its per-light residual at the match is within this many
+#: noise units (times the capture's model scale).
+INLIER_Z = 3.0
+#: A light whose measurement differs from the match's prediction by less than
+#: this fraction of the pixel's brightest is kept whatever its residual: less
+#: than a shadow or highlight takes away or adds, more than an attached shadow
+#: at the gauge's rim leaves.
+MINOR_FRACTION = 0.05
+#: Gauge pixels between the candidates of the first, whole-gauge scan.
+COARSE_STEP = 4
+#: Rounds of matching and choosing the lights.
+ROUNDS = 2
+#: Pixels handled at a time (bounds the (P, B, m) temporaries).
+CHUNK_PIXELS = 16384
+
+
+def solve_shadowed(capture: Capture, state, limit: float, model_scale: float) -> int:
+    """Match again, each on its own lights, the pixels whose residual exceeds ``limit``.
+
+    Parameters
+    ----------
+    capture : Capture
+    state : colorps.matching._MatchState
+        Every pixel's match so far (row, quality, distance, bands_used,
+        levels, dropped, brighter), improved in place.
+    limit : float
+        Residual (noise units, on the model scale) above which a pixel is tried.
+    model_scale : float
+        The capture's model scale (residuals are divided by it).
+
+    Returns
+    -------
+    int
+        Pixels whose match was replaced.
+    """
+    ys, xs = np.nonzero((state.row >= 0) & (state.quality > limit))
+    replaced = 0
+    for a in range(0, len(ys), CHUNK_PIXELS):
+        replaced += _solve_chunk(capture, state, ys[a:a + CHUNK_PIXELS],
+                                 xs[a:a + CHUNK_PIXELS], model_scale)
+    return replaced
+
+
+def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
+    """:func:`solve_shadowed` for some pixels; the number replaced.
+
+    Two starts, the better kept per pixel: the lights that light the pixel and
+    a scan of the whole gauge; and its current match with the lights that match
+    explains (a pixel whose few outlying lights are highlights, not shadows).
+    The better explains more lights, or as many more closely.
+    """
+    m, n_bands = capture.images, capture.bands
+    ov = capture.scene_ov[ys, xs].astype(np.float64)  # (P, B, m)
+    bands = ((state.bands_used[ys, xs][:, None] >> np.arange(n_bands)) & 1) == 1
+    clipped = np.zeros((len(ys), m), dtype=bool) if capture.scene_clipped is None else \
+        light_masks.to_bool(capture.scene_clipped[ys, xs], m)
+    norm = np.sqrt((ov * ov).sum(axis=-1, keepdims=True))
+    brightness = (np.divide(ov, norm, out=np.zeros_like(ov), where=norm > 0)
+                  * bands[..., None]).sum(axis=1)  # (P, m)
+    lit = (brightness >= DARK_FRACTION * brightness.max(axis=1, keepdims=True)) & ~clipped
+    gauge = _shadow_kernels.GaugeOVs(capture.gauge_ov, np.ascontiguousarray(capture.gauge_valid))
+    hg, wg = capture.gauge_ov.shape[:2]
+    centre = (np.full(len(ys), hg // 2), np.full(len(ys), wg // 2))
+    scanned = _search(capture, ys, xs, bands, lit, gauge, centre,
+                      math.ceil(max(hg, wg) / 2 / COARSE_STEP), COARSE_STEP)
+    current = state.row[ys, xs]
+    explained = _inliers(capture, ys, xs, bands, ~clipped, current, model_scale) & ~clipped
+    fits = [_trimmed_fit(capture, ys, xs, bands, clipped, gauge, keep, rows, model_scale)
+            for keep, rows in ((lit, scanned), (explained, current))]
+    # The fit that explains more of the pixel's lights (a wrong match explains
+    # a few of them well); of two that explain as many, the closer.
+    kept = [fit[1].sum(axis=1) for fit in fits]
+    second = (kept[1] > kept[0]) | ((kept[1] == kept[0]) & (fits[1][3] < fits[0][3]))
+    rows, keep, z, quality, distance = (np.where(second.reshape((-1,) + (1,) * (a.ndim - 1)),
+                                                 b, a) for a, b in zip(*fits))
+    enough = (keep.sum(axis=1) >= MIN_LIGHTS) & \
+        (bands.sum(axis=1) * (keep.sum(axis=1) - 1) >= 2)
+    # A match on the table's rim may stand for a normal beyond it, which dropping
+    # the lights it cannot explain would only hide: not taken.
+    inside = _interior(capture.gauge_valid).ravel()[np.maximum(rows, 0)]
+    better = enough & (rows >= 0) & inside & np.isfinite(quality) & \
+        (quality < state.quality[ys, xs])
+    ky, kx = ys[better], xs[better]
+    state.row[ky, kx] = rows[better]
+    state.quality[ky, kx] = quality[better]
+    state.distance[ky, kx] = distance[better]
+    state.levels[ky, kx] = 0
+    state.dropped[ky, kx] = light_masks.from_bool(~keep[better])
+    state.brighter[ky, kx] = light_masks.from_bool(~keep[better] & (z[better] > 0))
+    return int(better.sum())
+
+
+def _interior(gauge_valid: np.ndarray) -> np.ndarray:
+    """(Hg, Wg): gauge pixels whose 3 x 3 neighbourhood has every band usable."""
+    from scipy.ndimage import binary_erosion
+
+    return binary_erosion(gauge_valid.all(axis=-1), np.ones((3, 3), bool))
+
+
+def _trimmed_fit(capture, ys, xs, bands, clipped, gauge, keep, rows, model_scale):
+    """ROUNDS of matching around ``rows`` and keeping the lights the match explains;
+    (rows, keep, per-light residuals, residual on the model scale, distance)."""
+    wg = capture.gauge_ov.shape[1]
+    for round_ in range(ROUNDS + 1):
+        rows = _search(capture, ys, xs, bands, keep, gauge, np.divmod(np.maximum(rows, 0), wg),
+                       COARSE_STEP, 1)
+        if round_ < ROUNDS:
+            keep = _inliers(capture, ys, xs, bands, keep, rows, model_scale) & ~clipped
+    z = _light_z(capture, ys, xs, bands, keep, rows)
+    quality, distance = _residuals(capture, ys, xs, bands, keep, gauge, rows)
+    return rows, keep, z, quality / model_scale, distance
+
+
+def _light_z(capture, ys, xs, bands, keep, rows) -> np.ndarray:
+    """(P, m) per-light residuals of each pixel at gauge pixel ``rows``, the albedo
+    fitted over its ``keep`` lights, in units of what a right match leaves: the
+    measurement's noise, and the table's step and the model floor
+    (:mod:`colorps.residuals`) spread over the lights. Summed over the matched
+    bands and divided by sqrt(bands): negative for a shadow, positive for a
+    highlight."""
+    m, n_bands = capture.images, capture.bands
+    s = capture.scene_ov[ys, xs].astype(np.float64)  # (P, B, m)
+    g = capture.gauge_ov.reshape(-1, n_bands, m)[np.maximum(rows, 0)].astype(np.float64)
+    w = keep[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)  # (P, B)
+        resolution = capture.light_set(tuple(range(m))).resolution_at(np.maximum(rows, 0))
+        spread = (resolution[np.maximum(rows, 0)] / 6.0 + MODEL_FLOOR ** 2) * \
+            (s * s * w).sum(axis=-1) / np.maximum(keep.sum(axis=1), 1)[:, None]  # (P, B)
+        r = (s - ratio[..., None] * g) / np.sqrt(capture.model.sigma(s) ** 2
+                                                 + spread[..., None])
+    r = np.where(bands[..., None] & np.isfinite(r), r, 0.0)
+    return r.sum(axis=1) / np.sqrt(np.maximum(bands.sum(axis=1), 1))[:, None]
+
+
+def _minor(capture, ys, xs, bands, keep, rows) -> np.ndarray:
+    """(P, m): lights whose disagreement with the match is under MINOR_FRACTION of
+    the pixel's brightest predicted measurement (each band relative to its
+    norm, summed over the bands). Such a light is kept whatever its residual: a
+    cast shadow or a highlight changes a measurement by much more, and a light
+    near grazing (or an attached shadow the gauge does not reach) by less."""
+    m, n_bands = capture.images, capture.bands
+    s = capture.scene_ov[ys, xs].astype(np.float64)
+    g = capture.gauge_ov.reshape(-1, n_bands, m)[np.maximum(rows, 0)].astype(np.float64)
+    w = keep[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)
+        norm = np.sqrt((s * s * w).sum(axis=-1))[..., None]
+        predicted = np.where(bands[..., None], ratio[..., None] * g / norm, 0.0)
+        change = np.where(bands[..., None], np.abs(s / norm - predicted), 0.0)
+    predicted = np.nan_to_num(predicted).sum(axis=1)
+    change = np.nan_to_num(change).sum(axis=1)
+    return change < MINOR_FRACTION * predicted.max(axis=1, keepdims=True)
+
+
+def _inliers(capture, ys, xs, bands, keep, rows, model_scale) -> np.ndarray:
+    """The lights the match at ``rows`` explains: per-light residual within
+    INLIER_Z noise units (times the model scale)."""
+    z = _light_z(capture, ys, xs, bands, keep, rows)
+    return (np.abs(z) <= INLIER_Z * model_scale) | _minor(capture, ys, xs, bands, keep, rows)
+
+
+def _search(capture, ys, xs, bands, keep, gauge, centre, reach: int, step: int) -> np.ndarray:
+    """Each pixel's best gauge pixel in a window (flat index, -1: none)."""
+    pixels = _shadow_kernels.Pixels(capture.scene_ov, np.asarray(ys, np.int64),
+                                    np.asarray(xs, np.int64), np.ascontiguousarray(bands),
+                                    np.ascontiguousarray(keep))
+    window = _shadow_kernels.Window(np.asarray(centre[0], np.int64),
+                                    np.asarray(centre[1], np.int64), int(reach), int(step))
+    rows = np.empty(len(ys), dtype=np.int64)
+    d2 = np.empty(len(ys))
+    _shadow_kernels.masked_search(pixels, gauge, window, rows, d2)
+    return rows
+
+
+def _residuals(capture, ys, xs, bands, keep, gauge, rows) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (noise units, before the model scale) and distance of each match
+    (inf where there is none)."""
+    quality = np.full(len(ys), np.inf, dtype=np.float32)
+    distance = np.full(len(ys), np.inf, dtype=np.float32)
+    found = rows >= 0
+    if not found.any():
+        return quality, distance
+    pixels = _shadow_kernels.Pixels(capture.scene_ov, np.asarray(ys[found], np.int64),
+                                    np.asarray(xs[found], np.int64),
+                                    np.ascontiguousarray(bands[found]),
+                                    np.ascontiguousarray(keep[found]))
+    resolution = capture.light_set(tuple(range(capture.images))).resolution_at(rows[found])
+    gauge_model = capture.gauge_model or capture.model
+    q = np.empty(int(found.sum()), dtype=np.float32)
+    d = np.empty(int(found.sum()), dtype=np.float32)
+    _shadow_kernels.masked_residuals(pixels, gauge, rows[found], resolution,
+                                     capture.model.kernel_args(), gauge_model.kernel_args(),
+                                     MODEL_FLOOR ** 2, q, d)
+    quality[found], distance[found] = q, d
+    return quality, distance
