@@ -21,9 +21,10 @@ found by a trimmed fit that needs no table:
    :mod:`colorps.residuals` defines the residual).
 
 A pixel takes the new match when it explains it better than the one it had
-(a lower residual) and lies inside the table, not on its rim (a rim match may
-stand for a normal beyond the gauge, and dropping the lights it cannot explain
-would hide that); the refinement then goes past the gauge's pixel grid on
+(a lower residual); on the table's rim only when every light it drops as
+darker was predicted bright (a rim match may stand for a normal beyond the
+gauge, whose dim lights the rim cannot explain: dropping them would hide
+that); the refinement then goes past the gauge's pixel grid on
 the same lights, and ``lights.exr`` says which were left out. A pixel needs
 at least MIN_LIGHTS lights left (and its bands x (lights - 1) >= 2).
 """
@@ -39,7 +40,7 @@ from ._config import MIN_LIGHTS
 from .residuals import MODEL_FLOOR
 from .tables import Capture
 
-__all__ = ["COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "ROUNDS", "solve_shadowed"]
+__all__ = ["ACCEPTED", "COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "ROUNDS", "solve_shadowed"]
 
 # ---------------------------------------------------------------- tuning
 #: A light is taken as not reaching a pixel, to start with, when the pixel's
@@ -53,6 +54,9 @@ INLIER_Z = 3.0
 #: than a shadow or highlight takes away or adds, more than an attached shadow
 #: at the gauge's rim leaves.
 MINOR_FRACTION = 0.05
+#: A fit whose residual (noise units, on the model scale) is within this explains
+#: the pixel; of two such fits the one on more lights is kept.
+ACCEPTED = 3.0
 #: Gauge pixels between the candidates of the first, whole-gauge scan.
 COARSE_STEP = 4
 #: Rounds of matching and choosing the lights.
@@ -94,7 +98,7 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
     Two starts, the better kept per pixel: the lights that light the pixel and
     a scan of the whole gauge; and its current match with the lights that match
     explains (a pixel whose few outlying lights are highlights, not shadows).
-    The better explains more lights, or as many more closely.
+    Of two fits that explain the pixel the one on more lights is kept.
     """
     m, n_bands = capture.images, capture.bands
     ov = capture.scene_ov[ys, xs].astype(np.float64)  # (P, B, m)
@@ -114,17 +118,26 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
     explained = _inliers(capture, ys, xs, bands, ~clipped, current, model_scale) & ~clipped
     fits = [_trimmed_fit(capture, ys, xs, bands, clipped, gauge, keep, rows, model_scale)
             for keep, rows in ((lit, scanned), (explained, current))]
-    # The fit that explains more of the pixel's lights (a wrong match explains
-    # a few of them well); of two that explain as many, the closer.
+    # Of two fits that explain the pixel (residual within ACCEPTED), the one on
+    # more of its lights (a wrong match explains a few of them well), or as
+    # many more closely; else the one that explains it, else the closer.
     kept = [fit[1].sum(axis=1) for fit in fits]
-    second = (kept[1] > kept[0]) | ((kept[1] == kept[0]) & (fits[1][3] < fits[0][3]))
+    good = [fit[3] <= ACCEPTED for fit in fits]
+    closer = fits[1][3] < fits[0][3]
+    more = (kept[1] > kept[0]) | ((kept[1] == kept[0]) & closer)
+    second = np.where(good[0] & good[1], more, np.where(good[0] | good[1], good[1], closer))
     rows, keep, z, quality, distance = (np.where(second.reshape((-1,) + (1,) * (a.ndim - 1)),
                                                  b, a) for a, b in zip(*fits))
     enough = (keep.sum(axis=1) >= MIN_LIGHTS) & \
         (bands.sum(axis=1) * (keep.sum(axis=1) - 1) >= 2)
-    # A match on the table's rim may stand for a normal beyond it, which dropping
-    # the lights it cannot explain would only hide: not taken.
-    inside = _interior(capture.gauge_valid).ravel()[np.maximum(rows, 0)]
+    # A match on the table's rim may stand for a normal beyond the gauge, whose
+    # dim lights near the terminator the rim cannot explain; dropping them would
+    # hide that. On the rim, every light dropped as darker must have been
+    # predicted bright (a shadow takes away much light).
+    predicted, _ = _shares(capture, ys, xs, bands, keep, rows)
+    faint = predicted < DARK_FRACTION * predicted.max(axis=1, keepdims=True)
+    inside = _interior(capture.gauge_valid).ravel()[np.maximum(rows, 0)] | \
+        ~(~keep & (z < 0) & faint).any(axis=1)
     better = enough & (rows >= 0) & inside & np.isfinite(quality) & \
         (quality < state.quality[ys, xs])
     ky, kx = ys[better], xs[better]
@@ -180,12 +193,9 @@ def _light_z(capture, ys, xs, bands, keep, rows) -> np.ndarray:
     return r.sum(axis=1) / np.sqrt(np.maximum(bands.sum(axis=1), 1))[:, None]
 
 
-def _minor(capture, ys, xs, bands, keep, rows) -> np.ndarray:
-    """(P, m): lights whose disagreement with the match is under MINOR_FRACTION of
-    the pixel's brightest predicted measurement (each band relative to its
-    norm, summed over the bands). Such a light is kept whatever its residual: a
-    cast shadow or a highlight changes a measurement by much more, and a light
-    near grazing (or an attached shadow the gauge does not reach) by less."""
+def _shares(capture, ys, xs, bands, keep, rows) -> tuple[np.ndarray, np.ndarray]:
+    """(P, m) each light's predicted measurement at the match and its change from
+    it to the pixel's, each band relative to its norm, summed over the bands."""
     m, n_bands = capture.images, capture.bands
     s = capture.scene_ov[ys, xs].astype(np.float64)
     g = capture.gauge_ov.reshape(-1, n_bands, m)[np.maximum(rows, 0)].astype(np.float64)
@@ -195,8 +205,15 @@ def _minor(capture, ys, xs, bands, keep, rows) -> np.ndarray:
         norm = np.sqrt((s * s * w).sum(axis=-1))[..., None]
         predicted = np.where(bands[..., None], ratio[..., None] * g / norm, 0.0)
         change = np.where(bands[..., None], np.abs(s / norm - predicted), 0.0)
-    predicted = np.nan_to_num(predicted).sum(axis=1)
-    change = np.nan_to_num(change).sum(axis=1)
+    return np.nan_to_num(predicted).sum(axis=1), np.nan_to_num(change).sum(axis=1)
+
+
+def _minor(capture, ys, xs, bands, keep, rows) -> np.ndarray:
+    """(P, m): lights whose disagreement with the match is under MINOR_FRACTION of
+    the pixel's brightest predicted measurement (:func:`_shares`). Such a light
+    is kept whatever its residual: a cast shadow or a highlight changes a
+    measurement by much more, and a light near grazing by less."""
+    predicted, change = _shares(capture, ys, xs, bands, keep, rows)
     return change < MINOR_FRACTION * predicted.max(axis=1, keepdims=True)
 
 
