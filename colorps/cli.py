@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .camera import read_camera
 from .errors import ColorPSError, InputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 from .inputs import CaptureFiles
@@ -49,6 +50,14 @@ def _sphere(text: str):
         raise argparse.ArgumentTypeError(
             f"expected 'auto' or CX,CY,R in pixels, got {text!r}") from None
     return cx, cy, r
+
+
+def _camera(text: str):
+    """--camera's text as a Camera (None for "orthographic")."""
+    try:
+        return read_camera(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _albedo(text: str):
@@ -204,6 +213,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="gauge images under the same lights, same order")
     rec.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="gauge sphere in gauge-image pixels, or 'auto' to find it")
+    rec.add_argument("--camera", type=_camera, metavar="F|K.txt|FILE.json",
+                     help="a pinhole camera for the gauge sphere's normals: focal length "
+                          "in pixels (principal point at the image centre), a 3 x 3 "
+                          "intrinsic matrix K.txt, or a JSON (fx, fy, px, py); default "
+                          "orthographic")
     rec.add_argument("--lights", metavar="FILE",
                      help="instead of --gauge/--sphere: calibrated light directions "
                           "(.txt 'x y z' per image, .lp or .json); the gauge is rendered")
@@ -392,7 +406,7 @@ def _run(args, received: list[int]) -> int:
         if args.command == "reconstruct":
             options = _options(args)
             inputs = CaptureFiles(args.scene, gauge=args.gauge, sphere=args.sphere,
-                                  mask=args.mask, lights=args.lights,
+                                  camera=args.camera, mask=args.mask, lights=args.lights,
                                   light_intensities=args.light_intensities,
                                   gauge_albedo=args.gauge_albedo,
                                   virtual_radius=args.virtual_radius)

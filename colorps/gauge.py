@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .camera import Camera
 from .errors import GaugeError, InputError
 from .geometry import sphere_normals
 
@@ -104,7 +105,8 @@ class Gauge:
 
     @classmethod
     def from_sphere(cls, shape: tuple[int, int], cx: float, cy: float, radius: float,
-                    albedo=DEFAULT_ALBEDO, *, rim_margin: float | None = None) -> Gauge:
+                    albedo=DEFAULT_ALBEDO, *, rim_margin: float | None = None,
+                    camera: Camera | None = None) -> Gauge:
         """A sphere gauge of centre (cx, cy) and radius ``radius`` (pixels).
 
         Parameters
@@ -117,6 +119,11 @@ class Gauge:
         rim_margin : float, optional
             Pixels closer than this to the rim are left out (pixels; default
             ``max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * radius)``).
+        camera : Camera, optional
+            The pinhole camera the gauge images were taken with, in their
+            pixel grid (default: orthographic): the normals are then those
+            where each pixel's ray meets the sphere
+            (:func:`colorps.geometry.sphere_normals`).
 
         Raises
         ------
@@ -138,7 +145,7 @@ class Gauge:
                              f"table (need at least {MIN_RADIUS:g} px; 100+ px recommended)")
         margin = (max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * radius) if rim_margin is None
                   else float(rim_margin))
-        normals, rho = sphere_normals((h, w), cx, cy, radius)
+        normals, rho = sphere_normals((h, w), cx, cy, radius, camera)
         mask = rho <= 1.0 - margin / radius
         normals[~mask] = 0.0
         return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)))

@@ -1,19 +1,25 @@
 """Normals: the sphere's normal field and the angle between two normal maps.
 
 Conventions: pixel (x, y) = (column, row), pixel centres at integers; camera
-space x right, y up, z towards the camera; orthographic view.
+space x right, y up, z towards the camera; orthographic view unless a
+:class:`~colorps.camera.Camera` is given.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .camera import Camera
+
 __all__ = ["angular_error", "sphere_normals"]
 
+#: Newton steps fitting a sphere's cone to its silhouette circle (converges in 3-4).
+CONE_NEWTON_STEPS = 8
 
-def sphere_normals(shape: tuple[int, int], cx: float, cy: float,
-                   radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """Normals of a sphere seen orthographically, and its unclipped disk distance.
+
+def sphere_normals(shape: tuple[int, int], cx: float, cy: float, radius: float,
+                   camera: Camera | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normals of a sphere's image, and how far each pixel is towards its rim.
 
     Parameters
     ----------
@@ -21,14 +27,24 @@ def sphere_normals(shape: tuple[int, int], cx: float, cy: float,
         Image size in pixels.
     cx, cy, radius : float
         Silhouette centre and radius, pixels.
+    camera : Camera, optional
+        A pinhole camera (default: orthographic view). Off the optical axis a
+        sphere's silhouette is an ellipse, elongated towards the principal
+        point; the circle (cx, cy, radius) is taken to share its nearest and
+        farthest points from the principal point, which fixes the sphere's
+        direction and angular radius (a circle fitted to the ellipse does, to
+        a fraction of a pixel).
 
     Returns
     -------
     normals : (H, W, 3) ndarray of float64
-        n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx^2 - ny^2)); nz is 0
-        outside the disk (where the normal is meaningless).
+        Orthographic: n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx^2 - ny^2)).
+        Pinhole: the unit normal where the pixel's ray meets the sphere.
+        nz is 0 outside the sphere's image (where the normal is meaningless).
     rho : (H, W) ndarray of float64
-        Distance from the centre in radii (1 on the silhouette).
+        The sine of the angle between the normal and the direction to the
+        camera: 1 on the silhouette (orthographic: the distance from the centre
+        in radii), above 1 outside.
 
     Examples
     --------
@@ -39,6 +55,8 @@ def sphere_normals(shape: tuple[int, int], cx: float, cy: float,
     """
     h, w = shape
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    if camera is not None:
+        return _pinhole_sphere_normals(x, y, cx, cy, radius, camera, shape)
     nx = (x - cx) / radius
     ny = -(y - cy) / radius
     nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, None))
@@ -68,3 +86,73 @@ def angular_error(a, b) -> np.ndarray:
     b = np.asarray(b, dtype=np.float64)
     cos = np.clip((a * b).sum(axis=-1), -1.0, 1.0)
     return np.degrees(np.arccos(cos))
+
+
+def _pinhole_sphere_normals(x, y, cx, cy, radius, camera: Camera, shape):
+    """sphere_normals at pixel coordinates (x, y) of an image of ``shape`` under a
+    pinhole camera.
+
+    The cone of rays tangent to the sphere (axis at theta_c from the optical
+    axis, half-angle alpha: :func:`_cone_of_circle`) gives the sphere's centre
+    direction and, at unit distance, its radius sin(alpha). Each pixel's ray is
+    then intersected with it.
+    """
+    px, py = camera.principal(shape)
+    focal = (camera.fx + camera.fy) / 2.0
+    offset = np.array([(cx - px) * focal / camera.fx, (cy - py) * focal / camera.fy])
+    distance = float(np.hypot(*offset))
+    theta_c, alpha = _cone_of_circle(distance / focal, radius / focal)
+    radial = offset / distance if distance > 0 else np.array([1.0, 0.0])
+    # The axis in camera space: image x right, y down -> camera y up, looking along -z.
+    centre = np.array([np.sin(theta_c) * radial[0], -np.sin(theta_c) * radial[1],
+                       -np.cos(theta_c)])
+    sphere_radius = np.sin(alpha)  # the centre at distance 1
+    d = camera.rays(x, y, shape)
+    along = d @ centre  # d . C, |C| = 1
+    disc = along * along - (1.0 - sphere_radius ** 2)
+    t = along - np.sqrt(np.clip(disc, 0.0, None))
+    normals = (t[..., None] * d - centre) / sphere_radius
+    facing = np.clip(-(normals * d).sum(axis=-1), 0.0, 1.0)
+    rho = np.where(disc >= 0, np.sqrt(1.0 - facing * facing),
+                   1.0 + np.sqrt(np.clip(-disc, 0.0, None)))
+    normals[disc < 0] = 0.0
+    return normals, rho
+
+
+def _cone_of_circle(distance: float, radius: float) -> tuple[float, float]:
+    """(theta_c, alpha) of the cone whose image ellipse a circle stands for.
+
+    A cone of half-angle alpha whose axis is theta_c off the optical axis meets
+    the image plane (at unit focal length) in an ellipse of centre distance e,
+    semi-axes a (radial) and b ::
+
+        k = cos^2 theta_c - sin^2 alpha
+        e = sin theta_c cos theta_c / k,  a = sin alpha cos alpha / k,
+        b = sin alpha / sqrt(k)
+
+    The circle (``distance`` of its centre from the principal point,
+    ``radius``, both over the focal length) is taken as the one fitted to it:
+    e = distance, (a + b) / 2 = radius; solved by Newton's method from the
+    cone through the circle's nearest and farthest points.
+    """
+    near, far = np.arctan(distance - radius), np.arctan(distance + radius)
+    x = np.array([(near + far) / 2.0, (far - near) / 2.0])
+
+    def misfit(v):
+        theta, alpha = v
+        k = np.cos(theta) ** 2 - np.sin(alpha) ** 2
+        e = np.sin(theta) * np.cos(theta) / k
+        a = np.sin(alpha) * np.cos(alpha) / k
+        b = np.sin(alpha) / np.sqrt(k)
+        return np.array([e - distance, (a + b) / 2.0 - radius])
+
+    for _ in range(CONE_NEWTON_STEPS):
+        f = misfit(x)
+        h = 1e-7
+        jacobian = np.column_stack([(misfit(x + np.array([h, 0.0])) - f) / h,
+                                    (misfit(x + np.array([0.0, h])) - f) / h])
+        try:
+            x = x - np.linalg.solve(jacobian, f)
+        except np.linalg.LinAlgError:
+            break
+    return float(x[0]), float(x[1])

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from .camera import Camera
 from .errors import InputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 
@@ -31,6 +32,10 @@ class CaptureFiles:
     sphere : "auto" or (cx, cy, r), optional
         The gauge sphere in gauge-image pixels, or found with
         :func:`colorps.find_sphere` ("auto", the default with gauge images).
+    camera : Camera, optional
+        The pinhole camera of the gauge images (:mod:`colorps.camera`); default
+        orthographic. With a light file it is recorded but not yet used (the
+        rendered gauge is seen orthographically).
     mask : str or Path, optional
         Scene mask image (non-zero = solve).
     lights, light_intensities : str or Path, optional
@@ -51,6 +56,7 @@ class CaptureFiles:
     scene: str | Sequence[str]
     gauge: str | Sequence[str] | None = None
     sphere: object = None
+    camera: Camera | None = None
     mask: object = None
     lights: object = None
     light_intensities: object = None

@@ -238,7 +238,8 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     gauge_stack, _ = read_stack(stacks.gauge_paths, run.options.encoding, name="gauge",
                                 progress=progress)
     sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
-    gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo)
+    gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
+                              camera=inputs.camera)
     return gauge, gauge_stack, run, None
 
 
@@ -252,6 +253,7 @@ def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan
         gauge=[str(p) for p in stacks.gauge_paths],
         sphere=dict(zip(("cx", "cy", "r"), gauge.sphere)),
         sphere_found_automatically=inputs.sphere == "auto",
+        camera=None if inputs.camera is None else inputs.camera.as_dict(),
         lights=None if inputs.lights is None else str(inputs.lights),
         light_intensities=(None if inputs.light_intensities is None
                            else str(inputs.light_intensities)),

@@ -1,0 +1,148 @@
+"""The camera: orthographic (the default) or a pinhole of known intrinsics.
+
+A pinhole camera of focal lengths (fx, fy) and principal point (px, py), all in
+pixels, sees the pixel (x, y) along the ray ::
+
+    d = ((x - px) / fx, -(y - py) / fy, -1),  normalised
+
+in colorps's camera space (x right, y up, z towards the camera: the camera looks
+along -z). Under it a sphere's image is an ellipse, not a circle, and its
+normals are not the orthographic formula's: :func:`colorps.geometry.sphere_normals`
+takes a camera and intersects each pixel's ray with the sphere.
+
+``--camera`` gives it as a focal length in pixels (principal point at the image
+centre), a DiLiGenT-style ``K.txt`` (the 3 x 3 intrinsic matrix, one row per
+line: ``fx 0 px`` / ``0 fy py`` / ``0 0 1``), or a JSON file
+(``{"fx": .., "fy": .., "px": .., "py": ..}``, or ``{"K": [[...], [...], [...]]}``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["Camera", "read_camera"]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera's intrinsics, pixels.
+
+    Attributes
+    ----------
+    fx, fy : float
+        Focal lengths (pixels).
+    px, py : float or None
+        Principal point (pixel coordinates); None: the centre of the image it
+        is used with.
+    """
+
+    fx: float
+    fy: float
+    px: float | None = None
+    py: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise InputError(f"camera: {name} must be a focal length > 0 in pixels, "
+                                 f"got {value!r}")
+
+    def principal(self, shape: tuple[int, int]) -> tuple[float, float]:
+        """(px, py) for an image of ``shape`` (H, W)."""
+        h, w = shape
+        return (float((w - 1) / 2 if self.px is None else self.px),
+                float((h - 1) / 2 if self.py is None else self.py))
+
+    def rays(self, x, y, shape: tuple[int, int]) -> np.ndarray:
+        """Unit rays (..., 3) into the scene through pixel coordinates (x, y)."""
+        px, py = self.principal(shape)
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        d = np.stack([(x - px) / self.fx, -(y - py) / self.fy, -np.ones_like(x)], axis=-1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def as_dict(self) -> dict:
+        return dict(model="pinhole", fx=self.fx, fy=self.fy, px=self.px, py=self.py)
+
+
+def read_camera(spec) -> Camera | None:
+    """A Camera from ``--camera``'s text: a focal length in pixels, or a file.
+
+    Parameters
+    ----------
+    spec : str, Path, float or None
+        None or "orthographic": no camera (orthographic view). A number: the
+        focal length in pixels (principal point at the image centre). A path:
+        a ``K.txt`` (3 x 3 matrix) or a ``.json`` file (see the module docstring).
+
+    Examples
+    --------
+    >>> from colorps.camera import read_camera
+    >>> read_camera("3700")
+    Camera(fx=3700.0, fy=3700.0, px=None, py=None)
+    """
+    if spec is None or spec == "orthographic":
+        return None
+    if isinstance(spec, (int, float)) or _is_number(spec):
+        f = float(spec)
+        return Camera(f, f)
+    path = Path(spec)
+    if not path.is_file():
+        raise InputError(f"{path}: no such camera file (give a focal length in pixels, a "
+                         "K.txt or a .json)")
+    text = path.read_text(errors="replace")
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise InputError(f"{path}: not valid JSON ({error})") from None
+        if isinstance(data, dict) and "K" in data:
+            return _from_matrix(data["K"], path)
+        if isinstance(data, dict) and {"fx", "fy"} <= set(data):
+            try:
+                return Camera(float(data["fx"]), float(data["fy"]),
+                              None if data.get("px") is None else float(data["px"]),
+                              None if data.get("py") is None else float(data["py"]))
+            except (TypeError, ValueError):
+                raise InputError(f"{path}: fx, fy, px and py must be numbers") from None
+        raise InputError(f"{path}: a camera JSON holds fx and fy (and px, py), or K")
+    try:
+        rows = [[float(v) for v in line.replace(",", " ").split()]
+                for line in text.splitlines() if line.strip()]
+    except ValueError:
+        raise InputError(f"{path}: a K.txt holds a 3 x 3 matrix of numbers") from None
+    return _from_matrix(rows, path)
+
+
+def _from_matrix(rows, path: Path) -> Camera:
+    """A Camera from a 3 x 3 intrinsic matrix (zero skew)."""
+    k = np.asarray(rows, dtype=np.float64) if _is_matrix(rows) else None
+    if k is None or k.shape != (3, 3):
+        raise InputError(f"{path}: the intrinsic matrix K must be 3 x 3")
+    if abs(k[0, 1]) > 1e-9 * abs(k[0, 0]) or not np.allclose(k[2], [0, 0, 1]) or \
+            k[1, 0] != 0:
+        raise InputError(f"{path}: K must be [[fx, 0, px], [0, fy, py], [0, 0, 1]] "
+                         "(no skew)")
+    return Camera(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+
+
+def _is_matrix(rows) -> bool:
+    try:
+        np.asarray(rows, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _is_number(text) -> bool:
+    try:
+        float(text)
+    except (TypeError, ValueError):
+        return False
+    return True

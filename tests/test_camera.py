@@ -1,0 +1,193 @@
+"""Pinhole cameras: the gauge sphere's normals from the true rays, and the files
+that give a camera."""
+
+import json
+
+import numpy as np
+import pytest
+
+from colorps import Gauge, InputError, angular_error, reconstruct
+from colorps.camera import Camera, read_camera
+from colorps.geometry import sphere_normals
+
+
+def project(points, camera, shape):
+    """Pixel coordinates of camera-space points (forward pinhole projection)."""
+    px, py = camera.principal(shape)
+    return (px + camera.fx * points[:, 0] / -points[:, 2],
+            py - camera.fy * points[:, 1] / -points[:, 2])
+
+
+def sphere_in_view(camera, shape, centre, radius):
+    """(cx, cy, r) of the circle a fitted silhouette gives, and a 3-D sphere."""
+    c = np.asarray(centre, np.float64)
+    angles = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    # The silhouette: tangent points of the cone from the camera to the sphere.
+    axis = c / np.linalg.norm(c)
+    u = np.cross(axis, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    dist = np.linalg.norm(c)
+    tangent = np.sqrt(dist ** 2 - radius ** 2)
+    sin_a = radius / dist
+    ring = c - axis * radius * sin_a + radius * np.sqrt(1 - sin_a ** 2) * (
+        np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v)
+    assert np.allclose(np.linalg.norm(ring, axis=1), tangent)
+    x, y = project(ring, camera, shape)
+    a = np.column_stack([x, y, np.ones_like(x)])
+    sol = np.linalg.lstsq(a, x * x + y * y, rcond=None)[0]
+    cx, cy = sol[0] / 2, sol[1] / 2
+    return cx, cy, float(np.sqrt(sol[2] + cx * cx + cy * cy))
+
+
+@pytest.mark.parametrize("centre, limit", [((0.0, 0.0, -10.0), 1e-4),
+                                           ((1.2, -0.8, -10.0), 0.02),
+                                           ((-1.5, 1.0, -9.0), 0.05),
+                                           ((2.5, -1.5, -9.0), 0.1)])
+def test_pinhole_sphere_normals_match_the_projected_sphere(centre, limit):
+    """Points of a sphere projected forward land on pixel coordinates whose computed
+    normal is theirs, from the circle fitted to the silhouette (an ellipse off
+    axis): median error within ``limit`` degrees at 0, 8, 11 and 18 degrees off
+    axis (the circle stands for the ellipse less well the farther off axis it
+    is); orthographic normals are degrees off."""
+    from colorps.geometry import _pinhole_sphere_normals
+
+    camera = Camera(500.0, 500.0, 160.0, 120.0)
+    shape = (240, 320)
+    cx, cy, r = sphere_in_view(camera, shape, centre, 1.0)
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(4000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    points = np.asarray(centre) + n
+    to_camera = -points / np.linalg.norm(points, axis=1, keepdims=True)
+    visible = (n * to_camera).sum(axis=1) > 0.05
+    x, y = project(points[visible], camera, shape)
+    got, rho = _pinhole_sphere_normals(x, y, cx, cy, r, camera, shape)
+    error = angular_error(got, n[visible])
+    assert np.median(error) < limit and np.percentile(error, 99) < 15 * limit + 1e-4
+    assert (rho < 1).all()
+    # The whole-image field agrees at pixel centres, and orthographic normals of
+    # the same circle do not.
+    normals, _ = sphere_normals(shape, cx, cy, r, camera)
+    ortho, _ = sphere_normals(shape, cx, cy, r)
+    iy, ix = np.round(y).astype(int), np.round(x).astype(int)
+    keep = (iy >= 0) & (iy < shape[0]) & (ix >= 0) & (ix < shape[1])
+    iy, ix = iy[keep], ix[keep]
+    exact, _ = _pinhole_sphere_normals(ix.astype(float), iy.astype(float), cx, cy, r, camera,
+                                       shape)
+    inside = np.linalg.norm(exact, axis=1) > 0
+    np.testing.assert_allclose(normals[iy, ix][inside], exact[inside], atol=1e-12)
+    assert np.median(angular_error(ortho[iy, ix][inside], exact[inside])) > 2.0
+
+
+def test_without_a_camera_the_gauge_is_orthographic():
+    a = Gauge.from_sphere((60, 60), 29.5, 29.5, 25)
+    b = Gauge.from_sphere((60, 60), 29.5, 29.5, 25, camera=None)
+    np.testing.assert_array_equal(a.normals, b.normals)
+
+
+def render_sphere(camera, shape, centre, lights, albedo=0.7):
+    """A Lambertian sphere rendered by ray casting (its own code, not sphere_normals)."""
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    d = camera.rays(x, y, shape)
+    c = np.asarray(centre, np.float64)
+    b = d @ c
+    disc = b * b - (c @ c - 1.0)
+    hit = disc > 0
+    t = b - np.sqrt(np.where(hit, disc, 0.0))
+    normals = np.where(hit[..., None], t[..., None] * d - c, 0.0)
+    shading = np.clip(np.einsum("hwk,mk->mhw", normals, lights), 0, None) * albedo
+    stack = np.repeat(np.where(hit, shading, 0.0)[..., None], 3, axis=-1)
+    return stack.astype(np.float32), normals, hit
+
+
+def test_a_pinhole_gauge_removes_the_perspective_error():
+    """Scene and gauge spheres off axis under a short lens: with the camera the
+    normals are right to a fraction of a degree; read orthographically, they are
+    degrees off."""
+    camera = Camera(400.0, 400.0)
+    shape = (200, 260)
+    theta = np.radians(35)
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    lights = np.column_stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                              np.full(8, np.cos(theta))])
+    gauge_stack, _, gauge_hit = render_sphere(camera, shape, (-1.3, 0.5, -9.0), lights)
+    scene_stack, truth, scene_hit = render_sphere(camera, shape, (1.5, -0.4, -9.5), lights)
+    cx, cy, r = sphere_in_view(camera, shape, (-1.3, 0.5, -9.0), 1.0)
+    mask = scene_hit & (truth[..., 2] > 0.3)
+    errors = {}
+    for name, cam in (("pinhole", camera), ("orthographic", None)):
+        gauge = Gauge.from_sphere(shape, cx, cy, r, camera=cam)
+        result = reconstruct(scene_stack, gauge_stack, gauge, mask=mask, max_residual=None)
+        errors[name] = angular_error(result.normals[mask], truth[mask])
+    assert np.median(errors["pinhole"]) < 0.1
+    assert np.median(errors["orthographic"]) > 1.0 > 10 * np.median(errors["pinhole"])
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("3700", Camera(3700.0, 3700.0)),
+    ("K.txt", Camera(3772.1, 3759.7, 244.9, 256.9)),
+    ("cam.json", Camera(800.0, 810.0, 320.0, 240.0)),
+    ("k.json", Camera(3772.1, 3759.7, 244.9, 256.9)),
+])
+def test_camera_files(tmp_path, monkeypatch, text, expected):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "K.txt").write_text("3772.1 0 244.9\n0 3759.7 256.9\n0 0 1\n")
+    (tmp_path / "cam.json").write_text(json.dumps(dict(fx=800, fy=810, px=320, py=240)))
+    (tmp_path / "k.json").write_text(json.dumps(
+        dict(K=[[3772.1, 0, 244.9], [0, 3759.7, 256.9], [0, 0, 1]])))
+    assert read_camera(text) == expected
+    assert read_camera(None) is None and read_camera("orthographic") is None
+
+
+@pytest.mark.parametrize("content, message", [
+    ("1 2 3\n4 5 6\n", "3 x 3"),
+    ("3772 5 244\n0 3759 256\n0 0 1\n", "no skew"),
+    ("a b c\n", "numbers"),
+])
+def test_bad_camera_files_name_the_file(tmp_path, content, message):
+    path = tmp_path / "K.txt"
+    path.write_text(content)
+    with pytest.raises(InputError, match=f"K.txt.*{message}"):
+        read_camera(path)
+    with pytest.raises(InputError, match="no such camera file"):
+        read_camera(tmp_path / "missing.txt")
+    with pytest.raises(InputError, match="focal length > 0"):
+        read_camera("-5")
+
+
+def test_cli_camera_from_k_txt_is_used_and_recorded(tmp_path, capsys):
+    """``--camera K.txt``: the run's normals have no perspective error, and
+    report.json says which camera; a bad camera file is a one-line error naming it."""
+    from colorps.cli import main
+    from colorps.io import read_image, write_image
+
+    camera = Camera(400.0, 400.0, 129.5, 99.5)
+    shape = (200, 260)
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    lights = np.column_stack([0.57 * np.cos(phi), 0.57 * np.sin(phi), np.full(8, 0.82)])
+    gauge_stack, _, _ = render_sphere(camera, shape, (-1.3, 0.5, -9.0), lights)
+    scene_stack, truth, hit = render_sphere(camera, shape, (1.5, -0.4, -9.5), lights)
+    for k in range(8):
+        write_image(tmp_path / f"scene_{k}.exr", scene_stack[k])
+        write_image(tmp_path / f"gauge_{k}.exr", gauge_stack[k])
+    mask = hit & (truth[..., 2] > 0.3)
+    write_image(tmp_path / "mask.png", mask.astype(np.float32), dtype="uint8")
+    (tmp_path / "K.txt").write_text("400 0 129.5\n0 400 99.5\n0 0 1\n")
+    cx, cy, r = sphere_in_view(camera, shape, (-1.3, 0.5, -9.0), 1.0)
+    args = ["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
+            str(tmp_path / "gauge_*.exr"), "--sphere", f"{cx},{cy},{r}", "--mask",
+            str(tmp_path / "mask.png"), "--quiet", "--no-height", "--max-residual", "none"]
+    assert main(args + ["--out", str(tmp_path / "out"), "--camera",
+                        str(tmp_path / "K.txt")]) == 0
+    normals = read_image(tmp_path / "out" / "normal.exr")[0]
+    assert np.median(angular_error(normals[mask], truth[mask])) < 0.1
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["camera"] == dict(model="pinhole", fx=400.0, fy=400.0, px=129.5, py=99.5)
+    (tmp_path / "bad.txt").write_text("1 2\n")
+    with pytest.raises(SystemExit) as exit_:
+        main(args + ["--out", str(tmp_path / "bad"), "--camera", str(tmp_path / "bad.txt")])
+    assert exit_.value.code == 2
+    assert "bad.txt" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
