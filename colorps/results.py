@@ -154,8 +154,10 @@ class Reconstruction:
         the pixel, far above for cast shadows, highlights or other materials.
         NaN where no match was attempted.
     uncertainty : (H, W) ndarray of float32
-        68 % angular radius of the refined normal, degrees (:mod:`colorps.refine`);
-        NaN where not solved or not refined.
+        68 % angular radius of the refined normal, degrees: the noise's
+        (:mod:`colorps.refine`) times the match residual where that exceeds 1
+        (a pixel the gauge explains worse than the noise is less certain); NaN
+        where not solved or not refined.
     solved : (H, W) ndarray of bool
     reason : (H, W) ndarray of uint8
         Why a pixel is not solved: a :class:`~colorps.Reason` code.
