@@ -17,7 +17,11 @@ counted as 90 degrees, the median, and the fraction solved, for
   fitted to the scene (:func:`colorps.virtual.virtual_gauge`, what ``--lights``
   does);
 * **least squares**: Woodham's Lambertian photometric stereo on every light
-  (the bands' mean), every pixel solved.
+  (the bands' mean), every pixel solved;
+
+and the **facets** of gauge mode: the fraction of neighbouring solved pixels
+whose normals are identical (flat patches where the refinement kept a table
+normal).
 
 With ``--diligent FOLDER`` (DiLiGenT's ``pmsData/ballPNG``) it adds the Ball, in
 virtual mode (it has no gauge photographs).
@@ -36,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from colorps import Gauge, Lights, Options, angular_error, reconstruct, synth  # noqa: E402
 from colorps.shapes import dome_lights, folds_surface  # noqa: E402
+from colorps.resolve import StackModel, resolve  # noqa: E402
 from colorps.virtual import virtual_gauge  # noqa: E402
 
 NOISE = 0.003
@@ -70,6 +75,15 @@ def scores(normals, solved, truth, mask) -> tuple[float, float, float]:
     return float(error.mean()), float(np.median(error)), float(solved[mask].mean())
 
 
+def facets(normals, solved) -> float:
+    """Fraction of neighbouring solved pixel pairs (4-neighbours) with identical normals."""
+    across = solved[:, 1:] & solved[:, :-1]
+    down = solved[1:] & solved[:-1]
+    same = ((normals[:, 1:] == normals[:, :-1]).all(-1) & across).sum() + \
+        ((normals[1:] == normals[:-1]).all(-1) & down).sum()
+    return float(same / max(1, across.sum() + down.sum()))
+
+
 def least_squares(stack, directions, mask) -> np.ndarray:
     g = np.linalg.lstsq(directions, stack.mean(axis=3)[:, mask], rcond=None)[0].T
     normals = np.zeros(mask.shape + (3,))
@@ -77,15 +91,15 @@ def least_squares(stack, directions, mask) -> np.ndarray:
     return normals
 
 
-def run_virtual(stack, lights: Lights, mask):
-    gauge, run, _, _ = virtual_gauge(stack, lights, Options(), mask=mask)
+def run_virtual(stack, lights: Lights, mask, settings=None):
+    gauge, run, _, _ = virtual_gauge(stack, lights, settings or Options(), mask=mask)
     return reconstruct(stack, gauge.stack, gauge, run, mask=mask)
 
 
-def row(name, results, seconds):
+def row(name, results, seconds, facet=float("nan")):
     cells = " | ".join(f"{mean:.2f} / {median:.2f} / {solved:.2%}"
                        for mean, median, solved in results)
-    print(f"| {name} | {cells} | {seconds:.1f} |", flush=True)
+    print(f"| {name} | {cells} | {facet:.2%} | {seconds:.1f} |", flush=True)
 
 
 def main(argv=None) -> None:
@@ -94,14 +108,16 @@ def main(argv=None) -> None:
     parser.add_argument("--diligent", type=Path)
     args = parser.parse_args(argv)
     print("mean (refused = 90 deg) / median (deg) / solved\n")
-    print("| set | gauge | virtual | least squares | gauge-mode seconds |")
-    print("|---|---|---|---|---|")
+    print("| set | gauge | virtual | least squares | gauge-mode facets | gauge-mode seconds |")
+    print("|---|---|---|---|---|---|")
     sets = [("32 lights, Lambertian", 32, "lambert", "lambert", False),
             ("96 lights, Lambertian", 96, "lambert", "lambert", False),
             ("32 lights, rough (Oren-Nayar) scene and gauge", 32, "oren-nayar", "oren-nayar",
              False),
             ("32 lights, rough scene, Lambertian gauge", 32, "oren-nayar", "lambert", False),
-            ("32 lights, 8-bit sRGB", 32, "lambert", "lambert", True)]
+            ("32 lights, 8-bit sRGB", 32, "lambert", "lambert", True),
+            ("32 lights, 8-bit sRGB, rough scene, Lambertian gauge", 32, "oren-nayar",
+             "lambert", True)]
     for name, m, scene_brdf, gauge_brdf, eight_bit in sets:
         scene, lights, stack, gauge_stack, gauge = make_set(args.size, m, scene_brdf,
                                                             gauge_brdf, eight_bit)
@@ -114,7 +130,8 @@ def main(argv=None) -> None:
         ls = least_squares(stack, lights.directions[:, 0, :], mask)
         row(name, [scores(result.normals, result.solved, scene.normals, mask),
                    scores(virtual.normals, virtual.solved, scene.normals, mask),
-                   scores(ls, mask, scene.normals, mask)], seconds)
+                   scores(ls, mask, scene.normals, mask)], seconds,
+            facets(result.normals, result.solved & mask))
     if args.diligent is not None:
         ball(args.diligent)
 
@@ -131,8 +148,11 @@ def ball(folder: Path) -> None:
                          images=len(names))
     truth = loadmat(folder / "Normal_gt.mat")["Normal_gt"].astype(np.float64)
     mask = read_mask(folder / "mask.png", truth.shape[:2])
+    # 16-bit files: their clip level and quantisation, as colorps reconstruct reads them.
+    stored = resolve(Options(encoding="linear"),
+                     scene=StackModel.of_file(folder / names[0], "linear"))
     t0 = time.perf_counter()
-    result = run_virtual(stack, lights, mask)
+    result = run_virtual(stack, lights, mask, stored)
     seconds = time.perf_counter() - t0
     ls = least_squares(stack / lights.intensities[:, None, None, :], lights.directions, mask)
     row("DiLiGenT Ball (96 photographs)", [(np.nan, np.nan, np.nan),
