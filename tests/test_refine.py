@@ -123,4 +123,3 @@ def test_uncertainty_ranks_the_pixels_the_gauge_explains_poorly_worst():
     uncertain = result.uncertainty[ok]
     top = uncertain >= np.percentile(uncertain, 95)
     assert np.mean(error[top] > np.percentile(error, 90)) > 0.5
-
