@@ -16,6 +16,7 @@ __all__ = [
     "LossyInputWarning",
     "LowSolvedWarning",
     "OutputError",
+    "PairingWarning",
 ]
 
 
@@ -54,6 +55,10 @@ class LowSolvedWarning(ColorPSWarning):
 
 class LossyInputWarning(ColorPSWarning):
     """An input uses lossy compression (JPEG): results will be noisier."""
+
+
+class PairingWarning(ColorPSWarning):
+    """Images and lights may be paired wrongly (order, names)."""
 
 
 class ExposureWarning(ColorPSWarning):

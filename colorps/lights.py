@@ -3,10 +3,12 @@
 =========  ===================================================================
 format     content
 =========  ===================================================================
-``.txt``   one light per line, "x y z" (DiLiGenT's light_directions.txt);
-           intensities in a second file, one "r g b" per line
-           (light_intensities.txt)
-``.lp``    the RTI format: a count line, then "filename x y z" per light
+``.txt``   one light per line, "x y z" (DiLiGenT's light_directions.txt),
+           optionally after a line holding just the count; intensities in a
+           second file, one "r g b" per line (light_intensities.txt)
+``.lp``    the RTI format: a count line, then "filename x y z" per light; as
+           written on Windows too (backslash paths with spaces, decimal
+           commas, CRLF line ends)
 ``.json``  ``{"directions": [[x, y, z], ...], "intensities": [[r, g, b], ...]}``
 =========  ===================================================================
 
@@ -133,6 +135,45 @@ def _numbers(path: Path, lines: Sequence[str], width: int, what: str) -> np.ndar
     return np.array(rows)
 
 
+def _lp_line(path: Path, number: int, line: str) -> tuple[str, list[float]]:
+    """(file name, [x, y, z]) of one light line of an ``.lp`` file.
+
+    The last three fields are the direction (decimal commas allowed, as
+    Windows writes them in some locales, or the three joined by commas);
+    everything before them is the image's path, spaces included, of which the
+    file name is kept (Windows or POSIX separators)."""
+    from pathlib import PureWindowsPath
+
+    fields = line.strip().split()
+    numbers = None
+    if len(fields) >= 2 and fields[-1].count(",") == 2 and "." in fields[-1]:
+        numbers, name = fields[-1].split(","), fields[:-1]  # "x,y,z"
+    elif len(fields) >= 4:
+        numbers, name = fields[-3:], fields[:-3]
+    try:
+        direction = [float(v.replace(",", ".")) for v in numbers] if numbers else None
+    except ValueError:
+        direction = None
+    if direction is None or not name:
+        raise InputError(f"{path}: line {number} is not 'filename x y z' ({line.strip()!r})")
+    name = " ".join(name).strip('"')
+    return PureWindowsPath(name).name if "\\" in name else Path(name).name, direction
+
+
+def _without_count_line(lines: Sequence[str]) -> list[str]:
+    """The lines of a ``.txt`` of directions without a first line that holds
+    only their count (a common layout)."""
+    data = [line for line in lines if line.split("#", 1)[0].strip()]
+    if data and len(data[0].split("#", 1)[0].split()) == 1:
+        try:
+            count = int(data[0].split("#", 1)[0])
+        except ValueError:
+            return list(lines)
+        if count == len(data) - 1:
+            return data[1:]
+    return list(lines)
+
+
 def read_lights(path, intensities=None, *, images: int | None = None) -> Lights:
     """Read a light file (see the module docstring).
 
@@ -157,7 +198,7 @@ def read_lights(path, intensities=None, *, images: int | None = None) -> Lights:
     if suffix not in LIGHT_FORMATS:
         raise InputError(f"{path}: light files are {', '.join(LIGHT_FORMATS)}")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as exc:
         raise InputError(f"{path}: cannot read light file ({exc.strerror})") from None
     names: tuple[str, ...] = ()
@@ -181,11 +222,12 @@ def read_lights(path, intensities=None, *, images: int | None = None) -> Lights:
         body = lines[1:]
         if len(body) != count:
             raise InputError(f"{path}: says {count} lights but lists {len(body)}")
-        names = tuple(line.split()[0] for line in body)
-        directions = _numbers(path, [" ".join(line.split()[1:]) for line in body], 3,
-                              "light directions")
+        names, rows = zip(*(_lp_line(path, number, line)
+                            for number, line in enumerate(body, start=2)))
+        directions = np.array(rows)
     else:
-        directions = _numbers(path, text.splitlines(), 3, "light directions")
+        directions = _numbers(path, _without_count_line(text.splitlines()), 3,
+                              "light directions")
     if intensities is not None:
         ipath = Path(intensities)
         try:
@@ -195,12 +237,12 @@ def read_lights(path, intensities=None, *, images: int | None = None) -> Lights:
         first = next((line for line in lines if line.split("#", 1)[0].strip()), "")
         width = len(first.replace(",", " ").split()) or 1
         values = _numbers(ipath, lines, width, "light intensities")
+    directions = _directions(directions, str(path))
     try:
-        lights = Lights(_directions(directions, str(path)), values, names)
-    except InputError as exc:
-        message = str(exc)
-        raise InputError(message if message.startswith(str(path)) else
-                         f"{path}: {message}") from None
+        lights = Lights(directions, values, names)
+    except InputError as exc:  # the intensities: name their own file
+        source = path if intensities is None else Path(intensities)
+        raise InputError(f"{source}: {exc}") from None
     if images is not None and lights.images != images:
         raise InputError(f"{path}: lists {lights.images} lights but there are {images} "
                          "images; they are paired in order")

@@ -53,6 +53,7 @@ from .outputs import (
     save_height,
     save_reconstruction,
 )
+from .pairing import check_natural_order, pair_lights, pairing_record
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction
@@ -119,6 +120,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     options = options or Options()
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
     scene_paths = expand_paths(inputs.scene, name="scene")
+    check_natural_order(scene_paths, inputs.scene, "scene")
     stacks = _Stacks(scene_paths, check_stack_files(scene_paths, name="scene"))
     plan = plan_tiles(stacks.shape, tile=options.tile,
                       memory_limit_gib=options.memory_limit_gib, scheduler=scheduler)
@@ -175,8 +177,10 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
     if inputs.lights is not None:
         light_set = read_lights(inputs.lights, inputs.light_intensities,
                                 images=len(scene_paths))
+        light_set = pair_lights(light_set, scene_paths, inputs.lights)
         return dataclasses.replace(stacks, light_set=light_set)
     gauge_paths = expand_paths(inputs.gauge, name="gauge")
+    check_natural_order(gauge_paths, inputs.gauge, "gauge")
     if len(scene_paths) != len(gauge_paths):
         raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
                          f"{len(gauge_paths)}; they are paired in order")
@@ -264,7 +268,8 @@ def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan
         tiled_because=plan.why,
         exposure_scene_over_gauge=(None if stacks.exposures is None
                                    else stacks.exposures.tolist()),
-        gauge_levels=dict(clip_level=clip, dark_level=dark))
+        gauge_levels=dict(clip_level=clip, dark_level=dark),
+        pairing=pairing_record(stacks.scene_paths, stacks.gauge_paths, stacks.light_set))
 
 
 def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report: dict,

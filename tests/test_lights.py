@@ -110,3 +110,43 @@ def test_cli_with_a_light_file(tmp_path, capsys):
                  str(data / "short.txt"), "--out", str(tmp_path / "o3")]) == 1
     assert "lists 3 lights but there are 6 images" in capsys.readouterr().err
     assert not (tmp_path / "o3").exists()
+
+
+def test_light_files_as_users_have_them(tmp_path):
+    """An RTI .lp written on Windows (backslash paths with spaces, decimal commas,
+    CRLF, a byte-order mark), one with 'x,y,z' joined, and a .txt that starts
+    with the count: all read to the same lights, names kept without folders."""
+    directions = np.array([[0.5, 0.0, np.sqrt(0.75)], [0.0, -0.6, 0.8], [-0.28, 0.0, 0.96]])
+    windows = tmp_path / "dome.lp"
+    lines = ["3"] + [f"C:\\Users\\Ann Lee\\RTI shots\\img {k:02d}.jpg " +
+                     " ".join(f"{v:.6f}".replace(".", ",") for v in d)
+                     for k, d in enumerate(directions, start=1)]
+    windows.write_bytes(("\ufeff" + "\r\n".join(lines) + "\r\n").encode("utf-8"))
+    joined = tmp_path / "joined.lp"
+    joined.write_text("3\n" + "\n".join(f"/data/shot_{k}.tif " + ",".join(f"{v:.6f}" for v in d)
+                                        for k, d in enumerate(directions)) + "\n")
+    counted = tmp_path / "lights.txt"
+    counted.write_text("3\n" + "\n".join(" ".join(f"{v:.6f}" for v in d)
+                                         for d in directions) + "\n")
+    for path in (windows, joined, counted):
+        lights = read_lights(path, images=3)
+        np.testing.assert_allclose(lights.directions, directions, atol=1e-5)
+    assert read_lights(windows).names == ("img 01.jpg", "img 02.jpg", "img 03.jpg")
+    assert read_lights(joined).names == ("shot_0.tif", "shot_1.tif", "shot_2.tif")
+
+
+def test_bad_light_files_name_the_file_at_fault(tmp_path):
+    good = tmp_path / "lights.txt"
+    good.write_text("0 0 1\n0.6 0 0.8\n0 0.6 0.8\n")
+    bad_intensities = tmp_path / "intensities.txt"
+    bad_intensities.write_text("1 1 1\n1 -2 1\n1 1 1\n")
+    with pytest.raises(InputError, match="^.*intensities.txt: .*> 0"):
+        read_lights(good, bad_intensities)
+    broken = tmp_path / "broken.lp"
+    broken.write_text("2\nimg1.png 0 0 1\nimg2.png 0 zero 1\n")
+    with pytest.raises(InputError, match="broken.lp: line 3 is not 'filename x y z'"):
+        read_lights(broken)
+    wrong_count = tmp_path / "count.txt"
+    wrong_count.write_text("5\n0 0 1\n0.6 0 0.8\n0 0.6 0.8\n")
+    with pytest.raises(InputError, match="count.txt: line 1"):
+        read_lights(wrong_count)
