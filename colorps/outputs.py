@@ -99,6 +99,9 @@ def prepare_output_dir(out_dir, *, overwrite: bool = False,
         The path is a file, cannot be created or written, or already holds
         results and ``overwrite`` is false.
     """
+    if not str(out_dir).strip():
+        raise OutputError("--out is empty: name the results folder (it would be the "
+                          "current folder)")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: output path exists and is not a folder")
@@ -176,16 +179,21 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
     A new ``out`` appears whole, by one rename. An existing one that holds only
     colorps results is exchanged with the new folder in one atomic rename
     (``renameat2(RENAME_EXCHANGE)``; two renames where the system lacks it),
-    so an interruption leaves either the old results or the new ones. If it
-    holds other files too, only the result files are replaced, one by one.
+    so an interruption leaves either the old results or the new ones. An
+    existing folder that is not to be replaced (:func:`_in_place`: it holds
+    other files, is a link or a mount point, holds the current folder, or its
+    parent cannot be written) keeps its identity: the files are written in a
+    hidden folder inside it, on its file system, and moved in one by one.
     On any failure nothing is left behind: not the new folder, not the
     parents made for it, and an existing ``out`` is untouched.
     """
     out = out.absolute()
-    made = _make_parents(out.parent)
+    inside = out.is_dir() and _in_place(out)
+    made = [] if inside else _make_parents(out.parent)
     try:
         try:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.colorps-", dir=out.parent))
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.colorps-",
+                                        dir=out if inside else out.parent))
         except OSError as exc:
             raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
         try:
@@ -196,15 +204,16 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
                     except OSError as exc:
                         raise OutputError(f"{out}: cannot write {name} "
                                           f"({exc.strerror or exc})") from None
-            os.chmod(tmp, file_mode(directory=True))
-            if not out.exists():
-                os.rename(tmp, out)
-            elif {p.name for p in out.iterdir()} <= set(_ALL_FILES):
-                _exchange(tmp, out)
-                shutil.rmtree(tmp, ignore_errors=True)  # now the old results
-            else:
+            if inside:
                 for name in writers:
                     os.replace(tmp / name, out / name)
+            elif not out.exists():
+                os.chmod(tmp, file_mode(directory=True))
+                os.rename(tmp, out)
+            else:
+                os.chmod(tmp, file_mode(directory=True))
+                _exchange(tmp, out)
+                shutil.rmtree(tmp, ignore_errors=True)  # now the old results
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     except BaseException:
@@ -213,6 +222,21 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
                 folder.rmdir()
         raise
     return [out / name for name in writers]
+
+
+def _in_place(out: Path) -> bool:
+    """Whether an existing results folder must keep its identity (be written into,
+    not exchanged): it holds files other than colorps's results, is a symbolic
+    link or a mount point (a container's volume: nothing can be renamed over it),
+    is or holds the current folder, or its parent cannot be written."""
+    if out.is_symlink() or os.path.ismount(out):
+        return True
+    here = Path.cwd().resolve()
+    if out.resolve() == here or out.resolve() in here.parents:
+        return True
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        return True
+    return not {p.name for p in out.iterdir()} <= set(_ALL_FILES)
 
 
 def _make_parents(folder: Path) -> list[Path]:

@@ -407,3 +407,42 @@ def test_a_file_given_twice_is_refused_naming_it(capture, tmp_path, capsys, stac
                           "images 2 and 3 of 4")
     assert "Traceback" not in line
     assert not out.exists()
+
+
+def test_empty_out_is_refused_before_any_work(capture, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    before = snapshot(tmp_path)
+    assert main(args_for(capture, "")) == 1
+    one_line_error(capsys, "--out is empty")
+    assert snapshot(tmp_path) == before
+
+
+def test_out_dot_writes_into_the_users_own_folder(capture, tmp_path, monkeypatch):
+    """``--out .``: the folder the user stands in keeps its identity, its mode and
+    its other files; the results are written into it (twice, with --overwrite)."""
+    work = tmp_path / "work"
+    work.mkdir()
+    os.chmod(work, 0o750)
+    (work / "notes.txt").write_text("mine")
+    monkeypatch.chdir(work)
+    inode = work.stat().st_ino
+    assert main(args_for(capture, ".")) == 0
+    assert main(args_for(capture, ".", None, None, "--overwrite")) == 0
+    assert work.stat().st_ino == inode and (work.stat().st_mode & 0o777) == 0o750
+    assert (work / "notes.txt").read_text() == "mine"
+    assert (work / "normal.exr").exists()
+    assert not [p for p in work.iterdir() if p.name.startswith(".")]  # no temporaries
+    assert Path.cwd() == work
+
+
+def test_out_symlink_stays_a_link(capture, tmp_path):
+    """A results folder reached through a symbolic link (a mounted volume's path, a
+    shared folder) is written through the link, which stays one."""
+    real = tmp_path / "real"
+    link = tmp_path / "link"
+    assert main(args_for(capture, real)) == 0
+    link.symlink_to(real, target_is_directory=True)
+    stamp = (real / "report.json").stat().st_mtime_ns
+    assert main(args_for(capture, link, None, None, "--overwrite")) == 0
+    assert link.is_symlink() and real.is_dir() and not real.is_symlink()
+    assert (real / "report.json").stat().st_mtime_ns != stamp
