@@ -32,6 +32,7 @@ from .calibrate import calibrate_lights
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
+from .hygiene import check_contents, check_names
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
 from .io import (
@@ -121,6 +122,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
     scene_paths = expand_paths(inputs.scene, name="scene")
     check_natural_order(scene_paths, inputs.scene, "scene")
+    check_names(scene_paths, "scene")
     stacks = _Stacks(scene_paths, check_stack_files(scene_paths, name="scene"))
     plan = plan_tiles(stacks.shape, tile=options.tile,
                       memory_limit_gib=options.memory_limit_gib, scheduler=scheduler)
@@ -181,6 +183,7 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
         return dataclasses.replace(stacks, light_set=light_set)
     gauge_paths = expand_paths(inputs.gauge, name="gauge")
     check_natural_order(gauge_paths, inputs.gauge, "gauge")
+    check_names(gauge_paths, "gauge")
     if len(scene_paths) != len(gauge_paths):
         raise InputError(f"the scene has {len(scene_paths)} images but the gauge "
                          f"{len(gauge_paths)}; they are paired in order")
@@ -218,8 +221,10 @@ def _check_memory(stacks: _Stacks, inputs: CaptureFiles, options: Options,
 def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: bool):
     """The scene stack (left in its files for a tiled run) and its channel names."""
     if plan.rows is None:
-        return read_stack(stacks.scene_paths, options.encoding, name="scene",
-                          progress=progress)
+        scene, names = read_stack(stacks.scene_paths, options.encoding, name="scene",
+                                  progress=progress)
+        check_contents(scene, stacks.scene_paths, "scene")
+        return scene, names
     _m, h, _w, _c = stacks.shape
     if progress:  # a tiled run is slower: say why it is tiled
         from tqdm import tqdm
@@ -241,6 +246,7 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
         return gauge, gauge.stack, run, (brdf, fits)
     gauge_stack, _ = read_stack(stacks.gauge_paths, run.options.encoding, name="gauge",
                                 progress=progress)
+    check_contents(gauge_stack, stacks.gauge_paths, "gauge")
     sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
                               camera=inputs.camera)

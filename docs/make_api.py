@@ -17,7 +17,7 @@ MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct
            "colorps.reasons",
            "colorps.gauge", "colorps.camera", "colorps.virtual", "colorps.brdf", "colorps.lights",
            "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate",
-           "colorps.io", "colorps.inputs", "colorps.pairing", "colorps.outputs", "colorps.pipeline",
+           "colorps.io", "colorps.inputs", "colorps.hygiene", "colorps.pairing", "colorps.outputs", "colorps.pipeline",
            "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.mesh",
            "colorps.synth", "colorps.shapes", "colorps.sample", "colorps.errors",
            "colorps.cli")

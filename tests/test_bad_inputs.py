@@ -446,3 +446,36 @@ def test_out_symlink_stays_a_link(capture, tmp_path):
     assert main(args_for(capture, link, None, None, "--overwrite")) == 0
     assert link.is_symlink() and real.is_dir() and not real.is_symlink()
     assert (real / "report.json").stat().st_mtime_ns != stamp
+
+
+@pytest.mark.parametrize("stack", ["scene", "gauge"])
+def test_a_mask_in_the_stack_is_named_with_its_position(capture, tmp_path, capsys, stack):
+    """A glob that picks up a mask file: refused by its name before any pixel is read,
+    or, named like a photograph, by its two values; the message names the file and
+    its position, and nothing is written."""
+    folder, _ = capture
+    for kind in ("scene", "gauge"):
+        for k in range(4):
+            shutil.copy(folder / f"{kind}_{k:02d}.exr", tmp_path / f"{kind}_{k:02d}.exr")
+    mask = read_image(folder / "mask.png")[0][..., :1]
+    out = tmp_path / "out"
+    # By name: cat.mask.exr sorts after the photographs.
+    write_image(tmp_path / f"{stack}_zz.mask.exr", np.repeat(mask, 3, axis=2), dtype="half")
+    pattern = str(tmp_path / f"{stack}_*.exr")
+    given = {stack: pattern}
+    code = main(args_for(capture, out, given.get("scene"), given.get("gauge")))
+    assert code == 1
+    one_line_error(capsys, f"{stack}_zz.mask.exr", "image 5 of the 5", "looks like a mask")
+    assert not out.exists()
+    # By content: the same mask named like a photograph (and sized like the stack).
+    (tmp_path / f"{stack}_zz.mask.exr").rename(tmp_path / f"{stack}_04.exr")
+    size = read_image(tmp_path / f"{stack}_00.exr")[0].shape[:2]
+    binary = np.zeros(size + (3,), np.float32)
+    binary[size[0] // 4:size[0] // 2, size[1] // 4:size[1] // 2] = 1.0
+    write_image(tmp_path / f"{stack}_04.exr", binary, dtype="half")
+    other = "gauge" if stack == "scene" else "scene"  # five images on both sides
+    shutil.copy(tmp_path / f"{other}_00.exr", tmp_path / f"{other}_04.exr")
+    given = {"scene": str(tmp_path / "scene_*.exr"), "gauge": str(tmp_path / "gauge_*.exr")}
+    assert main(args_for(capture, out, given.get("scene"), given.get("gauge"))) == 1
+    one_line_error(capsys, f"{stack}_04.exr", "image 5 of the 5", "only 2 values (0 and 1)")
+    assert not out.exists()

@@ -1,0 +1,59 @@
+"""Files that do not belong in a stack: masks and alpha mattes picked up by a glob.
+
+A glob such as ``'cat/*.tga'`` also matches ``cat.mask.tga``; read as the 13th
+photograph, the mask makes a signature no gauge pixel has, and the error that
+follows blames the gauge. Two checks name such a file and its position instead:
+
+* by name, before any pixel is read (:func:`check_names`): a file whose name
+  says mask, matte or alpha;
+* by content, once the stack is read (:func:`check_contents`): an image whose
+  pixels take exactly two values, 0 and one level, as a mask does and no
+  photograph of a lit object can (a wholly clipped or black image is left to the
+  checks that say so).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["MASK_WORDS", "check_contents", "check_names"]
+
+#: A file whose name (without extension) holds one of these words, as a word
+#: or after a separator, is taken for a mask, not a photograph.
+MASK_WORDS = ("mask", "matte", "alpha")
+_MASK_NAME = re.compile(r"(^|[^a-z])(" + "|".join(MASK_WORDS) + r")([^a-z]|$)")
+#: Pixels read for the content check (a regular sample of each image).
+CONTENT_SAMPLE = 65536
+
+
+def check_names(paths: Sequence[Path], name: str) -> None:
+    """Refuse a stack holding a file named like a mask, naming it and its position."""
+    for k, path in enumerate(paths):
+        if _MASK_NAME.search(Path(path).stem.lower()):
+            raise InputError(
+                f"{path}: image {k + 1} of the {len(paths)} {name} images looks like a mask "
+                f"(by its name); give the {name} photographs only (a glob such as "
+                "'*.png' picks up mask files too), and the mask with --mask")
+
+
+def check_contents(stack: np.ndarray, paths: Sequence[Path], name: str) -> None:
+    """Refuse a stack holding an image of 0 and one other value only (a mask, a matte)."""
+    m = stack.shape[0]
+    if m < 2:
+        return
+    for k in range(m):
+        image = stack[k].reshape(-1)
+        step = max(1, image.size // CONTENT_SAMPLE)
+        values = np.unique(image[::step])
+        if values.size == 2 and values[0] <= 0.0 < values[1]:
+            raise InputError(
+                f"{paths[k]}: image {k + 1} of the {m} {name} images holds only "
+                f"2 values ({values[0]:g} and {values[1]:g}), like a "
+                f"mask, not a photograph; give the {name} photographs only, and the mask "
+                "with --mask")
