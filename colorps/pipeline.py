@@ -32,6 +32,7 @@ from .calibrate import calibrate_lights
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
+from .gauge_check import check_gauge
 from .hygiene import check_contents, check_names
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -40,6 +41,7 @@ from .io import (
     check_stack_files,
     expand_paths,
     input_levels,
+    pixel_type,
     read_image,
     read_mask,
     read_stack,
@@ -138,7 +140,8 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
                   gauge=None if inputs.lights is not None else
                   StackModel.of_file(stacks.gauge_infos[0], options.encoding))
-    gauge, gauge_stack, run, virtual = _make_gauge(inputs, stacks, scene, run, mask, progress)
+    gauge, gauge_stack, run, virtual, checked = _make_gauge(inputs, stacks, scene, run, mask,
+                                                            progress)
     if plan.rows is not None:
         with dask_client(scheduler) as client:
             result, preview = reconstruct_tiled(
@@ -151,6 +154,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     del scene  # the stack is not needed past here: free it for integration and writing
     _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
+    report["gauge_check"] = checked
     return _save(result, out, run.options, plan, report, names, preview, overwrite)
 
 
@@ -238,19 +242,22 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
 def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mask,
                 progress: bool):
     """(gauge, its stack, the settings with it, the virtual gauge's finish and fits or
-    None): photographed, or rendered under the light file."""
+    None, the photographed gauge's check or None): photographed, or rendered under
+    the light file."""
     if stacks.light_set is not None:
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress)
-        return gauge, gauge.stack, run, (brdf, fits)
+        return gauge, gauge.stack, run, (brdf, fits), None
     gauge_stack, _ = read_stack(stacks.gauge_paths, run.options.encoding, name="gauge",
                                 progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")
     sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
                               camera=inputs.camera)
-    return gauge, gauge_stack, run, None
+    checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], run.options.encoding,
+                          pixel_type(stacks.gauge_infos[0]) == "int")
+    return gauge, gauge_stack, run, None, checked
 
 
 def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan,

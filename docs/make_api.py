@@ -15,7 +15,7 @@ from pathlib import Path
 MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct",
            "colorps.results", "colorps.matching", "colorps.shadows", "colorps.tables",
            "colorps.reasons",
-           "colorps.gauge", "colorps.camera", "colorps.virtual", "colorps.brdf", "colorps.lights",
+           "colorps.gauge", "colorps.gauge_check", "colorps.camera", "colorps.virtual", "colorps.brdf", "colorps.lights",
            "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate",
            "colorps.io", "colorps.inputs", "colorps.hygiene", "colorps.pairing", "colorps.outputs", "colorps.pipeline",
            "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.mesh",

@@ -479,3 +479,38 @@ def test_a_mask_in_the_stack_is_named_with_its_position(capture, tmp_path, capsy
     assert main(args_for(capture, out, given.get("scene"), given.get("gauge"))) == 1
     one_line_error(capsys, f"{stack}_04.exr", "image 5 of the 5", "only 2 values (0 and 1)")
     assert not out.exists()
+
+
+def test_swapped_stacks_and_the_wrong_encoding_are_warned_about(capture, tmp_path, capsys):
+    """The gauge's shading is fitted as a lit sphere at its place: scene and gauge
+    swapped fit badly; 8-bit files decoded the wrong way fit far better the other
+    way, and the warning says which --encoding to pass. report.json records both fits."""
+    from colorps.io import srgb_encode
+
+    folder, info = capture
+    g = info["gauge_sphere"]
+    out = tmp_path / "swapped"
+    assert main(["reconstruct", "--scene", str(folder / "gauge_*.exr"), "--gauge",
+                 str(folder / "scene_*.exr"), "--sphere", "23.5,23.5,22", "--out", str(out),
+                 "--quiet", "--no-height"]) == 0
+    assert "scene and gauge are not swapped" in capsys.readouterr().err
+    # The capture as 8-bit files: linear codes (a camera's linear PNG), and sRGB codes.
+    for kind in ("scene", "gauge"):
+        for k in range(4):
+            image = read_image(folder / f"{kind}_{k:02d}.exr")[0]
+            write_image(tmp_path / f"lin_{kind}_{k}.png", image, dtype="uint8")
+            write_image(tmp_path / f"srgb_{kind}_{k}.png", srgb_encode(image), dtype="uint8")
+    sphere = f"{g['cx']},{g['cy']},{g['r']}"
+    cases = (("lin", "auto", "pass --encoding linear"), ("srgb", "linear",
+                                                         "pass --encoding srgb"),
+             ("srgb", "auto", None))
+    for prefix, encoding, said in cases:
+        out = tmp_path / f"{prefix}-{encoding}"
+        assert main(["reconstruct", "--scene", str(tmp_path / f"{prefix}_scene_*.png"),
+                     "--gauge", str(tmp_path / f"{prefix}_gauge_*.png"), "--sphere", sphere,
+                     "--encoding", encoding, "--out", str(out), "--quiet", "--no-height",
+                     "--max-residual", "none"]) == 0
+        err = capsys.readouterr().err
+        assert (said in err) if said else ("--encoding" not in err), err
+        check = json.loads((out / "report.json").read_text())["gauge_check"]
+        assert check["sphere_fit_residual"] > 0 and check["other_encoding_residual"] > 0
