@@ -415,11 +415,13 @@ def _run(args, received: list[int]) -> int:
                                        scheduler=args.scheduler)
             if not args.quiet:
                 s = result.stats
+                median = s.residual_median or 0.0
                 print(f"solved {s.solved} of {s.pixels} pixels "
                       f"({s.solved_from_light_subset} from a light subset; table "
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
-                      f"{s.residual_median or 0:.2f}, {s.seconds.total:.2f} s); results in "
-                      f"{args.out}/")
+                      f"{median:.2f}, {median * s.model_scale:.2f} in noise units before "
+                      f"the model scale {s.model_scale:.2f}; {s.seconds.total:.2f} s); "
+                      f"results in {args.out}/")
         elif args.command == "batch":
             return _batch(args)
         elif args.command == "integrate":

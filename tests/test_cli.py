@@ -202,3 +202,17 @@ def test_first_compile_of_a_colorps_kernel_is_announced_once(capsys):
     assert COMPILE_NOTICE not in capsys.readouterr().err
     _uncached_kernel("colorps._notice_test")(1)  # outside the context: no listener left
     assert COMPILE_NOTICE not in capsys.readouterr().err
+
+
+def test_summary_gives_the_residual_before_the_run_scale(sample, tmp_path, capsys):
+    """The run's median residual is about 1 by construction when a scale is fitted;
+    the summary also gives it in noise units (times the model scale), as in
+    report.json."""
+    out = tmp_path / "out"
+    args = [a for a in args_for(sample, out, "--no-height") if a != "--quiet"]
+    assert main(args) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    stats = json.loads((out / "report.json").read_text())["statistics"]
+    absolute = stats["residual_median"] * stats["model_scale"]
+    assert f"{absolute:.2f} in noise units before the model scale " \
+           f"{stats['model_scale']:.2f}" in line
