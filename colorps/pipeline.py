@@ -184,6 +184,12 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
         light_set = read_lights(inputs.lights, inputs.light_intensities,
                                 images=len(scene_paths))
         light_set = pair_lights(light_set, scene_paths, inputs.lights)
+        bands = light_set.intensities.shape[1]
+        if bands not in (1, scene_infos[0].channels):
+            source = inputs.light_intensities or inputs.lights
+            raise InputError(f"{source}: the intensities have {bands} values per light but "
+                             f"{scene_paths[0]} has {scene_infos[0].channels} channel(s); give "
+                             "one value or one per channel")
         return dataclasses.replace(stacks, light_set=light_set)
     gauge_paths = expand_paths(inputs.gauge, name="gauge")
     check_natural_order(gauge_paths, inputs.gauge, "gauge")
@@ -355,6 +361,9 @@ def dask_client(scheduler):
         return
     try:
         client = Client(scheduler, timeout=SCHEDULER_TIMEOUT)
+    except ValueError as error:  # an address Dask cannot read (http://, a typo)
+        raise InputError(f"--scheduler {scheduler}: not a Dask scheduler address ({error}); "
+                         "give tcp://HOST:8786, or 'local'") from None
     except (OSError, TimeoutError) as error:
         raise InputError(f"--scheduler {scheduler}: cannot connect ({error})") from None
     with client:

@@ -115,3 +115,22 @@ def test_dask_batch_gives_the_in_process_results(captures, tmp_path):
         a = read_image(tmp_path / "local" / spec.name / "normal.exr")[0]
         b = read_image(tmp_path / "dask" / spec.name / "normal.exr")[0]
         assert np.array_equal(a, b, equal_nan=True)
+
+
+@pytest.mark.parametrize("command", ["batch", "reconstruct"])
+def test_a_scheduler_address_dask_cannot_read_is_one_line(captures, tmp_path, capsys, command):
+    """``--scheduler http://...`` (a dashboard's address, not the scheduler's) ended in
+    a traceback: now exit 1 with one line saying what to give, and nothing written."""
+    from colorps.cli import main
+
+    matte = captures / "matte"
+    out = tmp_path / "out"
+    args = ([str(matte)] if command == "batch" else
+            ["--scene", str(matte / "scene_*.exr"), "--gauge", str(matte / "gauge_*.exr"),
+             "--sphere", "auto"])
+    assert main([command, *args, "--out", str(out), "--quiet",
+                 "--scheduler", "http://127.0.0.1:8787"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a Dask scheduler address" in err[0]
+    assert "tcp://HOST:8786" in err[0] and "Traceback" not in err[0]
+    assert not out.exists()

@@ -87,3 +87,15 @@ def test_lp_names_unrelated_to_the_files_pair_in_order_with_a_warning(capture, t
     assert run(capture, tmp_path / "out", tmp_path / "renamed.lp",
                str(folder / "img*.exr")) == 0
     assert "match none of the scene files" in capsys.readouterr().err
+
+
+def test_intensities_of_the_wrong_band_count_name_their_file(capture, tmp_path, capsys):
+    folder, lights = capture
+    write_lights(lights, tmp_path / "lights.txt")
+    (tmp_path / "intensities.txt").write_text("1 1\n" * 12)
+    out = tmp_path / "out"
+    assert run(capture, out, tmp_path / "lights.txt", str(folder / "img*.exr"),
+               "--light-intensities", str(tmp_path / "intensities.txt")) == 1
+    err = capsys.readouterr().err
+    assert "intensities.txt: the intensities have 2 values per light" in err
+    assert "3 channel(s)" in err and not out.exists()
