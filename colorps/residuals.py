@@ -167,18 +167,22 @@ def match_residual(scene_ov: np.ndarray, group: MatchedGroup, gauge: GaugeOverLi
     return residual, distance
 
 
-def light_residuals(scene_ov, gauge_ov, lights, bands_used, model: NoiseModel
-                    ) -> np.ndarray:
+def light_residuals(scene_ov, gauge_ov, lights, bands_used, model: NoiseModel, *,
+                    extra_variance: np.ndarray | None = None) -> np.ndarray:
     """Signed residual of every light, in noise units: (P, B, m) OVs -> (P, m).
 
     Only ``lights`` ((P, m) bool) enter the albedo fit; the others get a
     residual too (what they would need to be), which callers ignore.
+    ``extra_variance`` ((P, B), optional) is added to every measurement's
+    noise variance of its pixel and band (what else a right match leaves).
     """
     s = scene_ov.astype(np.float64)
     g = gauge_ov.astype(np.float64)
     w = lights[:, None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)  # (P, B)
-        r = (s - ratio[..., None] * g) / model.sigma(s)
+        sigma = model.sigma(s) if extra_variance is None else \
+            np.sqrt(model.sigma(s) ** 2 + extra_variance[..., None])
+        r = (s - ratio[..., None] * g) / sigma
     r = np.where(bands_used[..., None] & np.isfinite(r), r, 0.0)
     return r.sum(axis=1) / np.sqrt(np.maximum(bands_used.sum(axis=1), 1))[:, None]

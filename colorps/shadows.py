@@ -37,7 +37,7 @@ import numpy as np
 
 from . import _shadow_kernels, light_masks
 from ._config import MIN_LIGHTS
-from .residuals import MODEL_FLOOR
+from .residuals import MODEL_FLOOR, light_residuals
 from .tables import Capture
 
 __all__ = ["ACCEPTED", "COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "ROUNDS", "solve_shadowed"]
@@ -115,8 +115,8 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
     scanned = _search(capture, ys, xs, bands, lit, gauge, centre,
                       math.ceil(max(hg, wg) / 2 / COARSE_STEP), COARSE_STEP)
     current = state.row[ys, xs]
-    explained = _inliers(capture, ys, xs, bands, ~clipped, current, model_scale) & ~clipped
-    fits = [_trimmed_fit(capture, ys, xs, bands, clipped, gauge, keep, rows, model_scale)
+    explained = _inliers(capture, ov, bands, ~clipped, current, model_scale) & ~clipped
+    fits = [_trimmed_fit(capture, ys, xs, ov, bands, clipped, gauge, keep, rows, model_scale)
             for keep, rows in ((lit, scanned), (explained, current))]
     # Of two fits that explain the pixel (residual within ACCEPTED), the one on
     # more of its lights (a wrong match explains a few of them well), or as
@@ -134,7 +134,7 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
     # dim lights near the terminator the rim cannot explain; dropping them would
     # hide that. On the rim, every light dropped as darker must have been
     # predicted bright (a shadow takes away much light).
-    predicted, _ = _shares(capture, ys, xs, bands, keep, rows)
+    predicted, _ = _shares(ov, _matched(capture, rows), bands, keep)
     faint = predicted < DARK_FRACTION * predicted.max(axis=1, keepdims=True)
     inside = _interior(capture.gauge_valid).ravel()[np.maximum(rows, 0)] | \
         ~(~keep & (z < 0) & faint).any(axis=1)
@@ -157,7 +157,7 @@ def _interior(gauge_valid: np.ndarray) -> np.ndarray:
     return binary_erosion(gauge_valid.all(axis=-1), np.ones((3, 3), bool))
 
 
-def _trimmed_fit(capture, ys, xs, bands, clipped, gauge, keep, rows, model_scale):
+def _trimmed_fit(capture, ys, xs, ov, bands, clipped, gauge, keep, rows, model_scale):
     """ROUNDS of matching around ``rows`` and keeping the lights the match explains;
     (rows, keep, per-light residuals, residual on the model scale, distance)."""
     wg = capture.gauge_ov.shape[1]
@@ -165,63 +165,55 @@ def _trimmed_fit(capture, ys, xs, bands, clipped, gauge, keep, rows, model_scale
         rows = _search(capture, ys, xs, bands, keep, gauge, np.divmod(np.maximum(rows, 0), wg),
                        COARSE_STEP, 1)
         if round_ < ROUNDS:
-            keep = _inliers(capture, ys, xs, bands, keep, rows, model_scale) & ~clipped
-    z = _light_z(capture, ys, xs, bands, keep, rows)
+            keep = _inliers(capture, ov, bands, keep, rows, model_scale) & ~clipped
+    z = _light_z(capture, ov, _matched(capture, rows), bands, keep, rows)
     quality, distance = _residuals(capture, ys, xs, bands, keep, gauge, rows)
     return rows, keep, z, quality / model_scale, distance
 
 
-def _light_z(capture, ys, xs, bands, keep, rows) -> np.ndarray:
-    """(P, m) per-light residuals of each pixel at gauge pixel ``rows``, the albedo
-    fitted over its ``keep`` lights, in units of what a right match leaves: the
-    measurement's noise, and the table's step and the model floor
-    (:mod:`colorps.residuals`) spread over the lights. Summed over the matched
-    bands and divided by sqrt(bands): negative for a shadow, positive for a
-    highlight."""
-    m, n_bands = capture.images, capture.bands
-    s = capture.scene_ov[ys, xs].astype(np.float64)  # (P, B, m)
-    g = capture.gauge_ov.reshape(-1, n_bands, m)[np.maximum(rows, 0)].astype(np.float64)
-    w = keep[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)  # (P, B)
-        resolution = capture.light_set(tuple(range(m))).resolution_at(np.maximum(rows, 0))
-        spread = (resolution[np.maximum(rows, 0)] / 6.0 + MODEL_FLOOR ** 2) * \
-            (s * s * w).sum(axis=-1) / np.maximum(keep.sum(axis=1), 1)[:, None]  # (P, B)
-        r = (s - ratio[..., None] * g) / np.sqrt(capture.model.sigma(s) ** 2
-                                                 + spread[..., None])
-    r = np.where(bands[..., None] & np.isfinite(r), r, 0.0)
-    return r.sum(axis=1) / np.sqrt(np.maximum(bands.sum(axis=1), 1))[:, None]
+def _matched(capture, rows) -> np.ndarray:
+    """(P, B, m) float64 OVs of each pixel's matched gauge pixel."""
+    n_bands, m = capture.bands, capture.images
+    return capture.gauge_ov.reshape(-1, n_bands, m)[np.maximum(rows, 0)].astype(np.float64)
 
 
-def _shares(capture, ys, xs, bands, keep, rows) -> tuple[np.ndarray, np.ndarray]:
+def _light_z(capture, ov, g, bands, keep, rows) -> np.ndarray:
+    """(P, m) per-light residuals of pixels of OVs ``ov`` at matched gauge OVs ``g``
+    (:func:`colorps.residuals.light_residuals`, the albedo fitted over their
+    ``keep`` lights), in units of what a right match leaves: the measurement's
+    noise, and the table's step and the model floor (:mod:`colorps.residuals`)
+    spread over the lights. Negative for a shadow, positive for a highlight."""
+    rows = np.maximum(rows, 0)
+    resolution = capture.light_set(tuple(range(capture.images))).resolution_at(rows)
+    spread = (resolution[rows] / 6.0 + MODEL_FLOOR ** 2) * \
+        (ov * ov * keep[:, None, :]).sum(axis=-1) / \
+        np.maximum(keep.sum(axis=1), 1)[:, None]  # (P, B)
+    return light_residuals(ov, g, keep, bands, capture.model, extra_variance=spread)
+
+
+def _shares(ov, g, bands, keep) -> tuple[np.ndarray, np.ndarray]:
     """(P, m) each light's predicted measurement at the match and its change from
     it to the pixel's, each band relative to its norm, summed over the bands."""
-    m, n_bands = capture.images, capture.bands
-    s = capture.scene_ov[ys, xs].astype(np.float64)
-    g = capture.gauge_ov.reshape(-1, n_bands, m)[np.maximum(rows, 0)].astype(np.float64)
     w = keep[:, None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)
-        norm = np.sqrt((s * s * w).sum(axis=-1))[..., None]
+        ratio = (ov * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)
+        norm = np.sqrt((ov * ov * w).sum(axis=-1))[..., None]
         predicted = np.where(bands[..., None], ratio[..., None] * g / norm, 0.0)
-        change = np.where(bands[..., None], np.abs(s / norm - predicted), 0.0)
+        change = np.where(bands[..., None], np.abs(ov / norm - predicted), 0.0)
     return np.nan_to_num(predicted).sum(axis=1), np.nan_to_num(change).sum(axis=1)
 
 
-def _minor(capture, ys, xs, bands, keep, rows) -> np.ndarray:
-    """(P, m): lights whose disagreement with the match is under MINOR_FRACTION of
-    the pixel's brightest predicted measurement (:func:`_shares`). Such a light
-    is kept whatever its residual: a cast shadow or a highlight changes a
-    measurement by much more, and a light near grazing by less."""
-    predicted, change = _shares(capture, ys, xs, bands, keep, rows)
-    return change < MINOR_FRACTION * predicted.max(axis=1, keepdims=True)
-
-
-def _inliers(capture, ys, xs, bands, keep, rows, model_scale) -> np.ndarray:
+def _inliers(capture, ov, bands, keep, rows, model_scale) -> np.ndarray:
     """The lights the match at ``rows`` explains: per-light residual within
-    INLIER_Z noise units (times the model scale)."""
-    z = _light_z(capture, ys, xs, bands, keep, rows)
-    return (np.abs(z) <= INLIER_Z * model_scale) | _minor(capture, ys, xs, bands, keep, rows)
+    INLIER_Z noise units (times the model scale), or a disagreement under
+    MINOR_FRACTION of the pixel's brightest predicted measurement (:func:`_shares`;
+    a cast shadow or a highlight changes a measurement by much more, a light near
+    grazing by less)."""
+    g = _matched(capture, rows)
+    z = _light_z(capture, ov, g, bands, keep, rows)
+    predicted, change = _shares(ov, g, bands, keep)
+    minor = change < MINOR_FRACTION * predicted.max(axis=1, keepdims=True)
+    return (np.abs(z) <= INLIER_Z * model_scale) | minor
 
 
 def _search(capture, ys, xs, bands, keep, gauge, centre, reach: int, step: int) -> np.ndarray:
