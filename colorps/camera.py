@@ -122,7 +122,10 @@ def read_camera(spec) -> Camera | None:
 
 def _from_matrix(rows, path: Path) -> Camera:
     """A Camera from a 3 x 3 intrinsic matrix (zero skew)."""
-    k = np.asarray(rows, dtype=np.float64) if _is_matrix(rows) else None
+    try:
+        k = np.asarray(rows, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged rows, or not numbers
+        k = None
     if k is None or k.shape != (3, 3):
         raise InputError(f"{path}: the intrinsic matrix K must be 3 x 3")
     if abs(k[0, 1]) > 1e-9 * abs(k[0, 0]) or not np.allclose(k[2], [0, 0, 1]) or \
@@ -130,14 +133,6 @@ def _from_matrix(rows, path: Path) -> Camera:
         raise InputError(f"{path}: K must be [[fx, 0, px], [0, fy, py], [0, 0, 1]] "
                          "(no skew)")
     return Camera(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
-
-
-def _is_matrix(rows) -> bool:
-    try:
-        np.asarray(rows, dtype=np.float64)
-    except (TypeError, ValueError):
-        return False
-    return True
 
 
 def _is_number(text) -> bool:

@@ -85,15 +85,20 @@ def solve_shadowed(capture: Capture, state, limit: float, model_scale: float) ->
         Pixels whose match was replaced.
     """
     ys, xs = np.nonzero((state.row >= 0) & (state.quality > limit))
+    if not len(ys):
+        return 0
+    interior = _interior(capture.gauge_valid)  # one table for every chunk
     replaced = 0
     for a in range(0, len(ys), CHUNK_PIXELS):
         replaced += _solve_chunk(capture, state, ys[a:a + CHUNK_PIXELS],
-                                 xs[a:a + CHUNK_PIXELS], model_scale)
+                                 xs[a:a + CHUNK_PIXELS], model_scale, interior)
     return replaced
 
 
-def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
-    """:func:`solve_shadowed` for some pixels; the number replaced.
+def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float,
+                 interior: np.ndarray) -> int:
+    """:func:`solve_shadowed` for some pixels; the number replaced. ``interior``
+    is :func:`_interior` of the gauge.
 
     Two starts, the better kept per pixel: the lights that light the pixel and
     a scan of the whole gauge; and its current match with the lights that match
@@ -136,7 +141,7 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float) -> int:
     # predicted bright (a shadow takes away much light).
     predicted, _ = _shares(ov, _matched(capture, rows), bands, keep)
     faint = predicted < DARK_FRACTION * predicted.max(axis=1, keepdims=True)
-    inside = _interior(capture.gauge_valid).ravel()[np.maximum(rows, 0)] | \
+    inside = interior.ravel()[np.maximum(rows, 0)] | \
         ~(~keep & (z < 0) & faint).any(axis=1)
     better = enough & (rows >= 0) & inside & np.isfinite(quality) & \
         (quality < state.quality[ys, xs])
