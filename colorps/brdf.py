@@ -16,8 +16,9 @@ Lambert, real matte and plastic finishes are darker at grazing incidence. The
 second term is a normalised Blinn-Phong highlight of strength s_b per band.
 
 :func:`fit_brdf` fits g, s and shininess to a scene's observations at given
-normals (:func:`colorps.virtual.fit_scene_brdf` finds those normals) (an initial estimate from a Lambertian gauge, then from the fitted
-one): alternating least squares between the per-pixel albedos and the shared,
+normals (an initial estimate from a Lambertian gauge, then from the fitted one:
+:func:`colorps.virtual.fit_scene_brdf`): alternating least squares between the
+per-pixel albedos and the shared,
 non-negative parameters, on relative residuals with robust (Huber) weights so
 that cast shadows and interreflections do not pull the fit, over a grid of
 shininess values.

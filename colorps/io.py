@@ -62,8 +62,10 @@ DARK_CODES = 2.0
 #: File name suffixes of camera raw formats, which colorps does not decode
 #: (demosaicing and white balance are a raw converter's job): such a file is
 #: refused with advice on converting it to a linear TIFF.
-CAMERA_RAW_SUFFIXES = frozenset(
-    [".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".fff", ".iiq", ".k25", ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw", ".rw2", ".rwl", ".sr2", ".srf", ".srw", ".x3f"])
+CAMERA_RAW_SUFFIXES = frozenset([
+    ".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".fff", ".iiq", ".k25",
+    ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw", ".rw2",
+    ".rwl", ".sr2", ".srf", ".srw", ".x3f"])
 
 
 #: Header attributes of a photo's exposure (OpenImageIO's names of the EXIF

@@ -40,7 +40,8 @@ from ._config import MIN_LIGHTS
 from .residuals import MODEL_FLOOR, light_residuals
 from .tables import Capture
 
-__all__ = ["ACCEPTED", "COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "ROUNDS", "solve_shadowed"]
+__all__ = ["ACCEPTED", "COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "MINOR_FRACTION", "ROUNDS",
+           "solve_shadowed"]
 
 # ---------------------------------------------------------------- tuning
 #: A light is taken as not reaching a pixel, to start with, when the pixel's
