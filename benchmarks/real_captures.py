@@ -147,7 +147,7 @@ def draw(path, stack, gauge_stack, gauge, scene) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from colorps.outputs import _dropped_picture
+    from colorps.figures import dropped_picture
 
     full = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
     plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
@@ -155,7 +155,7 @@ def draw(path, stack, gauge_stack, gauge, scene) -> None:
         ("scene (mean image)", srgb_encode(np.clip(stack.mean(axis=0), 0, 1)), {}),
         ("quality without subsets\n(residual, noise units)",
          np.where(scene.mask, plain.quality, np.nan), dict(cmap="magma", vmin=0, vmax=10)),
-        ("lights dropped\n(blue 1, orange 2)", _dropped_picture(full.lights_dropped_count), {}),
+        ("lights dropped\n(blue 1, orange 2)", dropped_picture(full.lights_dropped_count), {}),
         ("error without subsets (deg)",
          np.where(plain.solved, angular_error(plain.normals, scene.normals), 90.0),
          dict(cmap="viridis", vmin=0, vmax=10)),

@@ -21,6 +21,7 @@ from .inputs import CaptureFiles
 from .memory import AUTO_MEMORY_FRACTION
 from .options import FLOAT_DARK_LEVEL, Options
 from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
+from .relight import RELIT_FORMATS
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
 __all__ = ["build_parser", "main"]
@@ -194,6 +195,12 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="skip the height map, relief and overview pictures")
     parser.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
                         help="also write a mesh of the height field with albedo colours")
+    parser.add_argument("--normal-convention", choices=("opengl", "directx"),
+                        default=_DEFAULTS.normal_convention,
+                        help="normal.png's green channel: y up (OpenGL, Blender, Unity) or "
+                             "y down (DirectX, Unreal); normal.exr is always y up")
+    parser.add_argument("--no-viewer", dest="viewer", action="store_false",
+                        help="skip the results viewer (index.html and viewer/)")
 
 
 
@@ -277,6 +284,29 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--out", required=True, metavar="FILE",
                      help="light file to write: .txt, .lp or .json")
     cal.add_argument("--overwrite", action="store_true", help="replace an existing file")
+
+    rel = sub.add_parser("relight", formatter_class=_FORMATTER,
+                         help="render a results folder under new lights (Lambertian)")
+    rel.add_argument("results", metavar="RESULTS", help="a results folder (normal.exr, "
+                     "albedo.exr)")
+    rel.add_argument("--lights", required=True, metavar="FILE",
+                     help="light directions (.txt 'x y z' per image, .lp or .json)")
+    rel.add_argument("--light-intensities", metavar="FILE",
+                     help="one 'r g b' (or one value) per light")
+    rel.add_argument("--out", required=True, metavar="DIR",
+                     help="folder for relit_001, relit_002, ...")
+    rel.add_argument("--format", choices=RELIT_FORMATS, default="png",
+                     help="8-bit sRGB PNG or linear float EXR")
+    rel.add_argument("--overwrite", action="store_true", help="replace existing images")
+
+    view = sub.add_parser("view", formatter_class=_FORMATTER,
+                          help="open a results folder's viewer (index.html) in a browser")
+    view.add_argument("results", metavar="RESULTS", help="a results folder")
+    view.add_argument("--serve", action="store_true",
+                      help="serve it over http on 127.0.0.1 instead of opening the file "
+                           "(until Ctrl-C)")
+    view.add_argument("--port", type=int, default=0,
+                      help="with --serve: the port (default: any free one)")
 
     demo = sub.add_parser("demo", formatter_class=_FORMATTER,
                           help="run the full pipeline on the bundled sample and report "
@@ -443,6 +473,15 @@ def _run(args, received: list[int]) -> int:
                       f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
                       f"{f.clipped:4d} {f.degrees_per_pixel:6.2f}")
             print(f"wrote {len(found)} light directions to {args.out}")
+        elif args.command == "relight":
+            from .relight import relight_files
+
+            written = relight_files(args.results, args.lights, args.out,
+                                    intensities=args.light_intensities,
+                                    file_format=args.format, overwrite=args.overwrite)
+            print(f"wrote {len(written)} relit images to {args.out}/")
+        elif args.command == "view":
+            _view(args)
         elif args.command == "demo":
             from .sample import run_demo
 
@@ -470,6 +509,30 @@ def _run(args, received: list[int]) -> int:
             return 1
         raise
     return 0
+
+
+def _view(args) -> None:
+    """Colorps view: open the page, or serve the folder until Ctrl-C."""
+    import webbrowser
+
+    from .viewer import serve_viewer, viewer_page
+
+    if not args.serve:
+        url = viewer_page(args.results).resolve().as_uri()
+        if webbrowser.open(url):
+            print(f"opened {url}")
+        else:
+            print(f"no browser found here: open {url} in one, or use --serve")
+        return
+    server = serve_viewer(args.results, args.port)
+    print(f"serving the viewer at http://127.0.0.1:{server.server_port}/index.html "
+          "(Ctrl-C to stop)", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:  # the way to stop it
+        print("stopped serving")
+    finally:
+        server.server_close()
 
 
 def _options(args) -> Options:

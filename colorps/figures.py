@@ -1,16 +1,24 @@
-"""Pictures people would rather look at than read: shaded relief and an overview.
+"""Pictures people would rather look at than read: shaded relief, an overview,
+colour-mapped maps with a colour bar, and keys (legends) under map pictures.
 
 Images are returned as float arrays in 0..1 (already display-encoded) and
-written by :mod:`colorps.io`, like every other image.
+written by :mod:`colorps.io`, like every other image. A map picture with a key
+keeps the map at its own pixels in its top-left H x W corner; the key is a
+strip below it (see :func:`with_key`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .io import srgb_encode
+from .reasons import Reason
 
-__all__ = ["as_rgb", "overview", "overview_step", "shaded_relief"]
+__all__ = ["COLOUR_MAP_STOPS", "DROPPED_COLOURS", "QUALITY_SCALE", "UNCERTAINTY_SCALE", "ColourScale", "as_rgb",
+           "colour_mapped", "dropped_legend", "dropped_picture", "legend", "overview", "overview_step", "reason_legend", "shaded_relief", "with_colour_bar",
+           "with_key"]
 
 #: The overview's panels are drawn from images subsampled to at most this many
 #: pixels on a side (a panel is 320 pixels wide): drawing a 4096-pixel image
@@ -155,3 +163,188 @@ def overview(scene_image, normals, albedo, height, *, title: str = "") -> np.nda
     if figure.has_error:
         raise RuntimeError(f"OpenImageIO could not draw the overview: {figure.geterror()}")
     return np.clip(figure.get_pixels(oiio.FLOAT), 0.0, 1.0)
+
+
+#: The colour map of the quality and uncertainty pictures and of the viewer:
+#: viridis (perceptually uniform, readable in grey and by colour-blind eyes) at
+#: nine evenly spaced stops, 8-bit sRGB, linearly interpolated between them.
+COLOUR_MAP_STOPS = ((68, 1, 84), (71, 45, 123), (59, 82, 139), (44, 114, 142), (33, 145, 140),
+                    (40, 174, 128), (94, 201, 98), (173, 220, 48), (253, 231, 37))
+#: Colours of lights.png and the viewer for 1, 2 and 3 or more dropped lights
+#: (8-bit sRGB; none dropped: black).
+DROPPED_COLOURS = ((90, 200, 255), (255, 170, 0), (255, 40, 200))
+#: Key strip under a map picture: text height as a fraction of the picture's
+#: width, within these bounds (pixels).
+KEY_TEXT_FRACTION = 1 / 40
+KEY_TEXT_PX = (12, 48)
+
+
+@dataclass(frozen=True)
+class ColourScale:
+    """A colour bar's range: values from ``lo`` to ``hi`` (``log``: evenly in
+    log10) map to the colour map; values outside are drawn at its ends.
+
+    Attributes
+    ----------
+    label : str
+        What the values are, with their unit.
+    lo, hi : float
+        The ends of the bar (lo < hi; both > 0 when ``log``).
+    log : bool
+        Logarithmic bar.
+    """
+
+    label: str
+    lo: float
+    hi: float
+    log: bool = False
+
+    def position(self, values) -> np.ndarray:
+        """Where values fall on the bar, 0..1 (NaN stays NaN)."""
+        v = np.asarray(values, dtype=np.float64)
+        lo, hi = self.lo, self.hi
+        if self.log:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v = np.log10(np.maximum(v, lo))
+            lo, hi = np.log10(lo), np.log10(hi)
+        return np.clip((v - lo) / (hi - lo), 0.0, 1.0)
+
+    def ticks(self) -> list[float]:
+        """Tick values: the powers of ten on a log bar, else five even steps."""
+        if self.log:
+            first, last = int(np.ceil(np.log10(self.lo))), int(np.floor(np.log10(self.hi)))
+            return [10.0 ** k for k in range(first, last + 1)]
+        return list(np.linspace(self.lo, self.hi, 5))
+
+
+#: The scales of quality.png and uncertainty.png (fixed, so that pictures of
+#: different runs compare): about 1 noise unit is a match the noise explains.
+QUALITY_SCALE = ColourScale("match residual (noise units)", 0.1, 100.0, log=True)
+UNCERTAINTY_SCALE = ColourScale("uncertainty: 68 % radius of the normal (degrees)", 0.01, 10.0,
+                                log=True)
+
+
+def colour_mapped(values, scale: ColourScale) -> np.ndarray:
+    """(H, W, 3) float32 sRGB picture of a map through the colour map; NaN is black."""
+    position = scale.position(values)
+    stops = np.asarray(COLOUR_MAP_STOPS, dtype=np.float32) / 255.0
+    at = np.nan_to_num(position, nan=0.0) * (len(stops) - 1)
+    below = np.minimum(at.astype(np.int64), len(stops) - 2)
+    frac = (at - below)[..., None].astype(np.float32)
+    rgb = stops[below] * (1 - frac) + stops[below + 1] * frac
+    return np.where(np.isnan(position)[..., None], np.float32(0.0), rgb).astype(np.float32)
+
+
+def _key_text_px(width: int) -> int:
+    low, high = KEY_TEXT_PX
+    return int(np.clip(round(width * KEY_TEXT_FRACTION), low, high))
+
+
+def _tick_text(value: float) -> str:
+    return f"{value:g}"
+
+
+def with_colour_bar(picture, scale: ColourScale) -> np.ndarray:
+    """A map picture with a colour bar, its ticks and label in a strip below it."""
+    width = np.shape(picture)[1]
+    text = _key_text_px(width)
+    bar_width = max(8 * text, min(width - 3 * text, 24 * text))
+    bar = colour_mapped(_bar_values(scale, bar_width), scale)
+    items = [("bar", bar), *((scale.position(v).item() * (bar_width - 1), _tick_text(v))
+                             for v in scale.ticks())]
+    return with_key(picture, _bar_key(items, scale.label, text))
+
+
+def _bar_values(scale: ColourScale, width: int) -> np.ndarray:
+    t = np.linspace(0.0, 1.0, width)
+    if scale.log:
+        return 10.0 ** (np.log10(scale.lo) + t * (np.log10(scale.hi) - np.log10(scale.lo)))
+    return scale.lo + t * (scale.hi - scale.lo)
+
+
+def _bar_key(items, label: str, text: int):
+    """The drawing of a colour bar key: (width, height, draw(buf, x0, y0))."""
+    import OpenImageIO as oiio
+
+    bar = items[0][1]
+    height = 4 * text + text // 2
+    label_width = oiio.ImageBufAlgo.text_size(label, text, FONT).width
+
+    def draw(buf, x0, y0):
+        strip = np.repeat(bar[None], text, axis=0)
+        start = x0 + text  # room for half a tick label at the bar's left end
+        buf.set_pixels(oiio.ROI(start, start + bar.shape[0], y0, y0 + text, 0, 1, 0, 3), strip)
+        for x, words in items[1:]:
+            oiio.ImageBufAlgo.render_text(buf, int(start + x), y0 + 2 * text + text // 4, words,
+                                          text, FONT, (0.0, 0.0, 0.0), alignx="center")
+        oiio.ImageBufAlgo.render_text(buf, x0, y0 + 4 * text, label, text, FONT,
+                                      (0.0, 0.0, 0.0))
+
+    return max(bar.shape[0] + 2 * text, label_width), height, draw
+
+
+def legend(entries, width: int):
+    """The drawing of a legend (swatches and labels, wrapped into rows):
+    (width, height, draw(buf, x0, y0)). ``entries``: (8-bit sRGB colour, label)."""
+    import OpenImageIO as oiio
+
+    text = _key_text_px(width)
+    row_height = text + text // 2
+    placed, x, y = [], 0, 0
+    for colour, label in entries:
+        item = 2 * text + oiio.ImageBufAlgo.text_size(label, text, FONT).width + text
+        if x and x + item > max(width, 16 * text):
+            x, y = 0, y + row_height
+        placed.append((x, y, colour, label))
+        x += item
+    used = max(px + 2 * text + oiio.ImageBufAlgo.text_size(lb, text, FONT).width
+               for px, _, _, lb in placed)
+
+    def draw(buf, x0, y0):
+        for px, py, colour, label in placed:
+            swatch = np.broadcast_to(np.asarray(colour, np.float32) / 255.0, (text, text, 3))
+            buf.set_pixels(oiio.ROI(x0 + px, x0 + px + text, y0 + py, y0 + py + text, 0, 1,
+                                    0, 3), np.ascontiguousarray(swatch))
+            oiio.ImageBufAlgo.render_text(buf, x0 + px + text + text // 2, y0 + py + text - 2,
+                                          label, text, FONT, (0.0, 0.0, 0.0))
+
+    return used, y + row_height, draw
+
+
+def with_key(picture, key) -> np.ndarray:
+    """``picture`` (H, W, 3) at its own pixels in the top-left corner, and below
+    it a white strip with ``key`` = (width, height, draw) drawn in it (the
+    figure is widened when the key is wider than the picture)."""
+    import OpenImageIO as oiio
+
+    picture = np.asarray(picture, dtype=np.float32)
+    h, w = picture.shape[:2]
+    key_width, key_height, draw = key
+    margin = _key_text_px(w) // 2
+    canvas = np.ones((h + key_height + 3 * margin, max(w, key_width + 2 * margin), 3),
+                     dtype=np.float32)
+    canvas[:h, :w] = picture
+    buf = oiio.ImageBuf(canvas)
+    draw(buf, margin, h + 2 * margin)
+    if buf.has_error:
+        raise RuntimeError(f"OpenImageIO could not draw a key: {buf.geterror()}")
+    return np.clip(buf.get_pixels(oiio.FLOAT), 0.0, 1.0)
+
+
+def dropped_picture(count) -> np.ndarray:
+    """(H, W, 3) float32 sRGB picture of the number of lights dropped per pixel."""
+    table = np.zeros((256, 3), dtype=np.float32)
+    for k, rgb in enumerate(DROPPED_COLOURS, start=1):
+        table[k:] = np.array(rgb) / 255.0
+    return table[np.minimum(np.asarray(count), 255)]
+
+
+def dropped_legend(width: int):
+    """The legend of :func:`dropped_picture` (see :func:`legend`)."""
+    names = ("1 light dropped", "2 lights dropped", "3 or more dropped")
+    return legend([((0, 0, 0), "none dropped"), *zip(DROPPED_COLOURS, names)], width)
+
+
+def reason_legend(width: int):
+    """The legend of :func:`colorps.reasons.reason_picture` (see :func:`legend`)."""
+    return legend([(r.colour, r.label) for r in Reason], width)

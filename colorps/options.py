@@ -105,6 +105,11 @@ class Options:
         overview pictures.
     mesh : {None, "ply", "obj", "both"}
         Files only: also write a mesh of the height field (needs ``height``).
+    normal_convention : {"opengl", "directx"}
+        Files only: normal.png's green channel points up ("opengl", as
+        normal.exr) or down ("directx").
+    viewer : bool
+        Files only: write the results viewer, index.html (:mod:`colorps.viewer`).
     max_input_gib : float
         Files only: refuse a stack whose decoded pixels (float32) would take
         more than this many GiB, before decoding any (headers are read first).
@@ -154,6 +159,8 @@ class Options:
     encoding: Literal["auto", "linear", "srgb"] = "auto"
     height: bool = True
     mesh: Literal["ply", "obj", "both"] | None = None
+    normal_convention: Literal["opengl", "directx"] = "opengl"
+    viewer: bool = True
     max_input_gib: float = 8.0
     brdf: Literal["fitted", "lambert"] = "fitted"
     tile: int | None = None
@@ -199,6 +206,11 @@ class Options:
                              f"got {self.encoding!r}")
         if self.brdf not in _BRDFS:
             raise InputError(f"brdf: expected 'fitted' or 'lambert', got {self.brdf!r}")
+        if self.normal_convention not in ("opengl", "directx"):
+            raise InputError(f"normal_convention: expected 'opengl' or 'directx', "
+                             f"got {self.normal_convention!r}")
+        if not isinstance(self.viewer, bool):
+            raise InputError(f"viewer: expected True or False, got {self.viewer!r}")
         if self.mesh not in _MESHES:
             raise InputError(f"mesh: expected 'ply', 'obj', 'both' or None, got {self.mesh!r}")
         if self.tile is not None and (isinstance(self.tile, bool) or

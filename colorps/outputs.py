@@ -1,34 +1,49 @@
 """Every output file of a reconstruction, written all together or not at all.
 
-==============  ==============================================================
-file            content
-==============  ==============================================================
-normal.exr      float32 camera-space unit normals, channels X, Y, Z; NaN where
-                not solved
-normal.png      8-bit preview (n + 1) / 2 in R, G, B; black where not solved
-albedo.exr      float32 linear albedo, one channel per input band (input names)
-albedo.png      sRGB preview, black where not solved
-quality.exr     float32 match residual in noise units (about 1 = explained,
-                see :mod:`colorps.residuals`); NaN where no match was tried
-invalid.png     why pixels are not solved, one colour per
-                :class:`~colorps.Reason`: black solved, grey background, blue
-                too dark, yellow clipped, magenta invalid value (NaN, Inf,
-                negative), red no good match, teal solved from a light subset
-uncertainty.exr float32 68 % angular radius of each refined normal (degrees);
-                NaN where not solved or not refined
-lights.png      lights dropped per pixel (cast shadows, highlights): black
-                none, then :data:`DROPPED_COLOURS` for 1, 2, 3+ lights
-lights.exr      the dropped lights as float32 bit masks of 16 images per
-                channel: bit i % 16 of channel i // 16 is image i (channels
-                "L" for up to 16 images, else "L0-15", "L16-31", ...)
-report.json     inputs, options, statistics, pixels by reason
-height.exr      float32 height in pixels (see :mod:`colorps.integrate`), when
-                the result has a height map
-relief.png      shaded relief of the height map, with it
-overview.png    scene, normals, albedo and relief side by side, with it
-mesh.ply/.obj   triangle mesh of the height field with albedo vertex colours,
-                when asked for
-==============  ==============================================================
+===============  =============================================================
+file             content
+===============  =============================================================
+normal.exr       float32 camera-space unit normals, channels X, Y, Z; NaN where
+                 not solved
+normal.png       16-bit normal map (n + 1) / 2 in R, G, B, y up ("opengl") or
+                 y down ("directx", G = (1 - ny) / 2); black where not solved
+albedo.exr       float32 linear albedo, one channel per input band (input names)
+albedo.png       sRGB preview, black where not solved
+quality.exr      float32 match residual in noise units (about 1 = explained,
+                 see :mod:`colorps.residuals`); NaN where no match was tried
+quality.png      quality.exr through the colour map, with its colour bar
+                 (:data:`~colorps.figures.QUALITY_SCALE`)
+invalid.png      why pixels are not solved, one colour per
+                 :class:`~colorps.Reason` (black solved, grey background, blue
+                 too dark, yellow clipped, magenta invalid value, red no good
+                 match, teal solved from a light subset), with a legend
+uncertainty.exr  float32 68 % angular radius of each refined normal (degrees);
+                 NaN where not solved or not refined
+uncertainty.png  uncertainty.exr through the colour map, with its colour bar
+lights.png       lights dropped per pixel (cast shadows, highlights): black
+                 none, then :data:`~colorps.figures.DROPPED_COLOURS` for 1, 2,
+                 3+ lights, with a legend
+lights.exr       the dropped lights as float32 bit masks of 16 images per
+                 channel: bit i % 16 of channel i // 16 is image i (channels
+                 "L" for up to 16 images, else "L0-15", "L16-31", ...)
+index.html       the results viewer (relighting, every map, values under the
+viewer/          cursor) and its data: see :mod:`colorps.viewer`
+report.json      inputs, options, statistics, pixels by reason, the scales of
+                 height.png and the normal map's convention
+height.exr       float32 height in pixels (see :mod:`colorps.integrate`), when
+                 the result has a height map
+height.tif       the same as a float32 TIFF (NaN outside), for GIS and DEM tools
+height.png       16-bit codes of the height (:mod:`colorps.codes`: 0 outside,
+                 else lo + (code - 1) (hi - lo) / 65534 pixels, lo and hi in
+                 report.json "exports")
+relief.png       shaded relief of the height map, with it
+overview.png     scene, normals, albedo and relief side by side, with it
+mesh.ply/.obj    triangle mesh of the height field with albedo vertex colours,
+                 when asked for
+===============  =============================================================
+
+Pictures with a key (quality, uncertainty, invalid, lights) hold the map at its
+own pixels in their top-left H x W corner, the key in a strip below.
 
 A tiled run (``--tile``, ``--memory-limit``, ``--scheduler``) writes its
 .exr maps in TILED_EXR_SIDE x TILED_EXR_SIDE pixel tiles, so that a viewer or
@@ -48,34 +63,56 @@ import shutil
 import tempfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from .errors import OutputError
-from .figures import as_rgb, overview, shaded_relief
+from .codes import code_range, encode
+from .errors import InputError, OutputError
+from .figures import (
+    QUALITY_SCALE,
+    UNCERTAINTY_SCALE,
+    as_rgb,
+    colour_mapped,
+    dropped_legend,
+    dropped_picture,
+    overview,
+    reason_legend,
+    shaded_relief,
+    with_colour_bar,
+    with_key,
+)
 from .interrupts import interrupts_kept
 from .io import file_mode, srgb_encode, write_image
 from .reasons import Reason, reason_picture
 from .results import Reconstruction
+from .viewer import VIEWER_FILES, write_viewer
 
 __all__ = [
     "HEIGHT_FILES",
     "MESH_FILES",
+    "NORMAL_CONVENTIONS",
     "OUTPUT_FILES",
+    "Exports",
     "check_height_targets",
+    "height_codes",
+    "normal_picture",
     "prepare_output_dir",
     "save_height",
     "save_reconstruction",
+    "write_folder",
 ]
 
 #: Written by every reconstruction.
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
-                "invalid.png", "lights.png", "lights.exr", "uncertainty.exr", "report.json")
-#: Colours (8-bit sRGB) of lights.png for 1, 2 and 3 or more dropped lights.
-DROPPED_COLOURS = ((90, 200, 255), (255, 170, 0), (255, 40, 200))
+                "quality.png", "invalid.png", "lights.png", "lights.exr", "uncertainty.exr",
+                "uncertainty.png", *VIEWER_FILES, "report.json")
+#: Conventions of normal.png: which way its green channel points.
+NORMAL_CONVENTIONS = ("opengl", "directx")
 #: Written when the result has a height map.
-HEIGHT_FILES = ("height.exr", "relief.png", "overview.png")
+HEIGHT_FILES = ("height.exr", "height.tif", "height.png", "relief.png", "overview.png")
 #: Written when asked for, by kind.
 MESH_FILES = {"ply": "mesh.ply", "obj": "mesh.obj"}
 _ALL_FILES = OUTPUT_FILES + HEIGHT_FILES + tuple(MESH_FILES.values())
@@ -127,13 +164,41 @@ def prepare_output_dir(out_dir, *, overwrite: bool = False,
     return out
 
 
+@dataclass(frozen=True)
+class Exports:
+    """How the files beyond the maps are written.
+
+    Attributes
+    ----------
+    mesh : tuple of {"ply", "obj"}
+        Mesh files to write (needs the height map).
+    normal_convention : {"opengl", "directx"}
+        normal.png's green channel: y up (OpenGL, as normal.exr) or y down
+        (DirectX: G = (1 - ny) / 2).
+    viewer : bool
+        Write index.html and viewer/ (see :mod:`colorps.viewer`).
+    exr_tile : int or None
+        Write the .exr maps in tiles of this side (pixels), as a tiled run does
+        (TILED_EXR_SIDE); None: scanlines.
+    """
+
+    mesh: tuple[str, ...] = ()
+    normal_convention: Literal["opengl", "directx"] = "opengl"
+    viewer: bool = True
+    exr_tile: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.normal_convention not in NORMAL_CONVENTIONS:
+            raise InputError(f"normal_convention: expected one of {NORMAL_CONVENTIONS}, "
+                             f"got {self.normal_convention!r}")
+
+
 def save_reconstruction(result: Reconstruction, out_dir, *,
                         channel_names: Sequence[str] | None = None,
                         scene_preview: np.ndarray | None = None,
-                        report: dict | None = None, mesh: Sequence[str] = (),
+                        report: dict | None = None, exports: Exports = Exports(),
                         overwrite: bool = False,
-                        finished: Future[Reconstruction] | None = None,
-                        exr_tile: int | None = None) -> list[Path]:
+                        finished: Future[Reconstruction] | None = None) -> list[Path]:
     """Write every output file of a reconstruction (see the module docstring).
 
     Parameters
@@ -148,28 +213,46 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         the pixels it draws (see :func:`colorps.figures.overview`).
     report : dict, optional
         Inputs and options to record in report.json beside the statistics.
-    mesh : sequence of {"ply", "obj"}, optional
-        Mesh files to write (needs ``result.height``).
+    exports : Exports, optional
+        Mesh files, normal.png's convention, the viewer, tiled .exr maps.
     overwrite : bool, optional
         Replace existing results.
     finished : concurrent.futures.Future of Reconstruction, optional
         ``result`` with its height map, still being computed (the pipeline
         integrates in a thread meanwhile): the files that need no height are
-        written first, the height files and report.json once it is done. An
-        error it raises fails the whole write (nothing is left behind).
-    exr_tile : int, optional
-        Write the .exr maps in tiles of this side (pixels), as a tiled run does
-        (TILED_EXR_SIDE); default scanlines.
+        written first, the height files, the viewer and report.json once it is
+        done. An error it raises fails the whole write (nothing is left behind).
 
     Returns
     -------
     list of Path
         The files written.
     """
-    if mesh and result.height is None and finished is None:
+    if exports.mesh and result.height is None and finished is None:
         raise OutputError("a mesh needs the height map; integrate the normals first")
-    writers = _writers(result, channel_names, scene_preview, report, mesh, finished, exr_tile)
+    writers = _writers(result, channel_names, scene_preview, report, exports, finished)
     out = prepare_output_dir(out_dir, overwrite=overwrite)
+    return _write_folder(out, writers)
+
+
+def write_folder(out_dir, writers: dict[str, Callable[[Path], object]], *,
+                 overwrite: bool = False) -> list[Path]:
+    """Write files all together or not at all (see :func:`_write_folder`).
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The folder (made when missing).
+    writers : dict of str to callable
+        ``{file name: write(path)}``, called in order.
+    overwrite : bool, optional
+        Replace files of these names already there.
+
+    Returns
+    -------
+    list of Path
+    """
+    out = prepare_output_dir(out_dir, overwrite=overwrite, files=list(writers))
     return _write_folder(out, writers)
 
 
@@ -206,7 +289,7 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
                                           f"({exc.strerror or exc})") from None
             if inside:
                 for name in writers:
-                    os.replace(tmp / name, out / name)
+                    _replace(tmp / name, out / name)
             elif not out.exists():
                 os.chmod(tmp, file_mode(directory=True))
                 os.rename(tmp, out)
@@ -222,6 +305,18 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
                 folder.rmdir()
         raise
     return [out / name for name in writers]
+
+
+def _replace(source: Path, target: Path) -> None:
+    """Move a file or folder over ``target`` (a folder: the old one is moved
+    aside first, then removed)."""
+    if target.is_dir() and not target.is_symlink():
+        old = target.with_name(f".{target.name}.colorps-old-{os.getpid()}")
+        os.rename(target, old)
+        os.rename(source, target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(source, target)
 
 
 def _in_place(out: Path) -> bool:
@@ -310,8 +405,8 @@ def save_height(height: np.ndarray, out, *, mesh=None, overwrite: bool = False) 
     write_image(out, height, channel_names=["Z"])
 
 
-def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
-             finished=None, exr_tile=None) -> dict[str, Callable[[Path], object]]:
+def _writers(result: Reconstruction, channel_names, scene_preview, report, exports: Exports,
+             finished=None) -> dict[str, Callable[[Path], object]]:
     """``{file name: write(path)}`` of every file to write: the maps, then those
     that need the height (waiting for ``finished``), report.json last."""
 
@@ -322,42 +417,91 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, mesh,
     if channel_names is None:
         channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
     solved = result.solved[..., None]
+    width = result.normals.shape[1]
+    title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
 
     def exr(p, image, channels):
-        return write_image(p, image, channel_names=channels, tile=exr_tile)
+        return write_image(p, image, channel_names=channels, tile=exports.exr_tile)
+
+    def picture(p, image):
+        return write_image(p, image, dtype="uint8")
 
     writers = {
         "normal.exr": lambda p: exr(p, result.normals, ["X", "Y", "Z"]),
-        "normal.png": lambda p: write_image(p, np.where(solved, (result.normals + 1) / 2, 0.0),
-                                            dtype="uint8"),
+        "normal.png": lambda p: write_image(
+            p, normal_picture(result.normals, exports.normal_convention), dtype="uint16"),
         "albedo.exr": lambda p: exr(p, result.albedo, list(channel_names)),
-        "albedo.png": lambda p: write_image(
-            p, srgb_encode(as_rgb(np.where(solved, result.albedo, 0.0))), dtype="uint8"),
+        "albedo.png": lambda p: picture(
+            p, srgb_encode(as_rgb(np.where(solved, result.albedo, 0.0)))),
         "quality.exr": lambda p: exr(p, result.quality, ["Q"]),
-        "invalid.png": lambda p: write_image(p, reason_picture(result.reason), dtype="uint8"),
-        "lights.png": lambda p: write_image(p, _dropped_picture(result.lights_dropped_count),
-                                            dtype="uint8"),
+        "quality.png": lambda p: picture(p, with_colour_bar(
+            colour_mapped(result.quality, QUALITY_SCALE), QUALITY_SCALE)),
+        "invalid.png": lambda p: picture(p, with_key(reason_picture(result.reason),
+                                                     reason_legend(width))),
+        "lights.png": lambda p: picture(p, with_key(
+            dropped_picture(result.lights_dropped_count), dropped_legend(width))),
         "lights.exr": lambda p: _write_light_channels(p, result.dropped_lights,
-                                                      result.stats.images, exr_tile),
+                                                      result.stats.images, exports.exr_tile),
         "uncertainty.exr": lambda p: exr(p, result.uncertainty, ["U"]),
+        "uncertainty.png": lambda p: picture(p, with_colour_bar(
+            colour_mapped(result.uncertainty, UNCERTAINTY_SCALE), UNCERTAINTY_SCALE)),
     }
+    exported = {"normal.png": {"convention": exports.normal_convention,
+                               "encoding": "16-bit (n + 1) / 2, y up" if
+                               exports.normal_convention == "opengl" else
+                               "16-bit (nx + 1) / 2, (1 - ny) / 2, (nz + 1) / 2: y down"}}
     if result.height is not None or finished is not None:
         preview = result.albedo if scene_preview is None else scene_preview
-        title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
         writers["height.exr"] = lambda p: exr(p, final().height, ["Z"])
-        writers["relief.png"] = lambda p: write_image(p, shaded_relief(final().height),
-                                                      dtype="uint8")
-        writers["overview.png"] = lambda p: write_image(
-            p, overview(preview, result.normals, result.albedo, final().height, title=title),
-            dtype="uint8")
-        for kind in mesh:
+        writers["height.tif"] = lambda p: write_image(p, final().height)
+        writers["height.png"] = lambda p: write_image(
+            p, height_codes(final().height)[0] / np.float32(65535), dtype="uint16")
+        writers["relief.png"] = lambda p: picture(p, shaded_relief(final().height))
+        writers["overview.png"] = lambda p: picture(
+            p, overview(preview, result.normals, result.albedo, final().height, title=title))
+        for kind in exports.mesh:
             writers[MESH_FILES[kind]] = lambda p: _write_mesh(final().height, result.albedo, p)
+    if exports.viewer:
+        # One call writes the page and its data folder; "viewer" is listed so
+        # that it is moved into place with the rest.
+        writers["index.html"] = lambda p: write_viewer(final(), p.parent,
+                                                       band_names=channel_names, title=title)
+        writers["viewer"] = lambda p: None
     about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS,
              "files": [*list(writers), "report.json"]}
-    writers["report.json"] = lambda p: p.write_text(json.dumps(
-        {**(report or {}), "statistics": final().stats.as_dict(), **about}, indent=2,
-        default=_jsonable))
+
+    def report_json(p):
+        if final().height is not None:
+            lo, hi = height_codes(final().height)[1:]
+            exported["height.png"] = {"unit": "pixels", "lo": lo, "hi": hi,
+                                      "decoding": "code 0: outside; else lo + (code - 1) * "
+                                                  "(hi - lo) / 65534"}
+        p.write_text(json.dumps({**(report or {}), "statistics": final().stats.as_dict(),
+                                 "exports": exported, **about}, indent=2, default=_jsonable))
+
+    writers["report.json"] = report_json
     return writers
+
+
+def normal_picture(normals, convention: str = "opengl") -> np.ndarray:
+    """normal.png's values, 0..1: (n + 1) / 2, green (1 - ny) / 2 for "directx";
+    0 where not solved (NaN)."""
+    if convention not in NORMAL_CONVENTIONS:
+        raise InputError(f"normal_convention: expected one of {NORMAL_CONVENTIONS}, "
+                         f"got {convention!r}")
+    n = np.asarray(normals, dtype=np.float32)
+    picture = (n + 1) / 2
+    if convention == "directx":
+        picture[..., 1] = 1 - picture[..., 1]
+    return np.where(np.isfinite(n).all(axis=-1, keepdims=True), picture, np.float32(0.0))
+
+
+def height_codes(height) -> tuple[np.ndarray, float, float]:
+    """height.png's 16-bit codes (:mod:`colorps.codes`) of the heights as
+    height.exr stores them (float32), and their lo and hi."""
+    stored = np.asarray(height, dtype=np.float32)
+    lo, hi = code_range(stored)
+    return encode(stored, lo, hi), lo, hi
 
 
 #: Images per float32 channel of lights.exr (exact integers up to 2^24).
@@ -377,13 +521,6 @@ def _write_light_channels(path, dropped: np.ndarray, m: int, exr_tile=None):
     names = ["L"] if m <= LIGHTS_PER_CHANNEL else \
         [f"L{a}-{min(a + LIGHTS_PER_CHANNEL, m) - 1}" for a in starts]
     return write_image(path, channels, channel_names=names, tile=exr_tile)
-
-
-def _dropped_picture(count: np.ndarray) -> np.ndarray:
-    table = np.zeros((256, 3), dtype=np.float32)
-    for k, rgb in enumerate(DROPPED_COLOURS, start=1):
-        table[k:] = np.array(rgb) / 255.0
-    return table[count]
 
 
 def _write_mesh(height, colours, path) -> None:

@@ -51,6 +51,7 @@ from .memory import TilePlan, plan_tiles, release_freed_memory
 from .options import Options
 from .outputs import (
     TILED_EXR_SIDE,
+    Exports,
     check_height_targets,
     prepare_output_dir,
     save_height,
@@ -314,9 +315,11 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
     with ThreadPoolExecutor(max_workers=1) as pool:
         finished = pool.submit(with_height, result) \
             if options.height and result.height is None else None
+        exports = Exports(mesh=options.mesh_kinds, normal_convention=options.normal_convention,
+                          viewer=options.viewer, exr_tile=TILED_EXR_SIDE if tiled else None)
         save_reconstruction(result, out, channel_names=names, scene_preview=preview,
-                            report=report, mesh=options.mesh_kinds, overwrite=overwrite,
-                            finished=finished, exr_tile=TILED_EXR_SIDE if tiled else None)
+                            report=report, exports=exports, overwrite=overwrite,
+                            finished=finished)
     return result if finished is None else finished.result()
 
 

@@ -18,7 +18,8 @@ MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct
            "colorps.gauge", "colorps.gauge_check", "colorps.camera", "colorps.virtual", "colorps.brdf", "colorps.lights",
            "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate",
            "colorps.io", "colorps.inputs", "colorps.hygiene", "colorps.pairing", "colorps.outputs", "colorps.pipeline",
-           "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.mesh",
+           "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.codes",
+           "colorps.viewer", "colorps.relight", "colorps.mesh",
            "colorps.synth", "colorps.shapes", "colorps.sample", "colorps.errors",
            "colorps.cli")
 HERE = Path(__file__).resolve().parent

@@ -297,8 +297,8 @@ def test_result_files_follow_the_umask(capture, tmp_path):
     finally:
         os.umask(old)
     assert (out.stat().st_mode & 0o777) == 0o755
-    for path in out.iterdir():
-        assert (path.stat().st_mode & 0o777) == 0o644, path
+    for path in out.rglob("*"):
+        assert (path.stat().st_mode & 0o777) == (0o755 if path.is_dir() else 0o644), path
 
 
 def test_existing_file_with_glob_characters(capture, tmp_path):

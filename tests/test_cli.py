@@ -7,7 +7,7 @@ import pytest
 from colorps import __version__, angular_error
 from colorps.cli import main
 from colorps.io import read_image, write_image
-from colorps.outputs import OUTPUT_FILES
+from colorps.outputs import HEIGHT_FILES, OUTPUT_FILES
 from colorps.synth import write_synthetic
 
 
@@ -30,7 +30,7 @@ def args_for(sample, out, *extra, sphere=None):
 def test_reconstruct_writes_every_output(sample, tmp_path):
     out = tmp_path / "out"
     assert main(args_for(sample, out, "--mask", str(sample[0] / "mask.png"))) == 0
-    defaults = OUTPUT_FILES + ("height.exr", "relief.png", "overview.png")
+    defaults = OUTPUT_FILES + HEIGHT_FILES
     assert sorted(p.name for p in out.iterdir()) == sorted(defaults)
     normals, names = read_image(out / "normal.exr")
     assert names == ["X", "Y", "Z"] and normals.shape == (64, 64, 3)
@@ -44,6 +44,7 @@ def test_reconstruct_writes_every_output(sample, tmp_path):
     assert report["statistics"]["solved"] == mask.sum()
     assert report["options"]["mode"] == "colour" and report["statistics"]["grid_n"] > 1
     assert read_image(out / "normal.png", "linear")[0].shape == (64, 64, 3)
+    assert sorted(p.name for p in (out / "viewer").iterdir()) == ["level0.js"]
 
 
 def test_auto_sphere_mono_and_options(sample, tmp_path):

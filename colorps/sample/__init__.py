@@ -61,8 +61,9 @@ class DemoReport:
             text.append(f"  height RMS error {self.height_rms_px:.2f} px "
                         f"({self.height_rms_px / self.relief_px:.2%} of the "
                         f"{self.relief_px:.1f} px relief)")
-        text.append(f"  outputs in {out}/ (normal.png, albedo.png, quality.exr, "
+        text.append(f"  outputs in {out}/ (normal.exr, albedo.exr, quality.exr, "
                     "report.json, ...)")
+        text.append(f"  look at them: colorps view {out}  (or open {out}/index.html)")
         return text
 
 
