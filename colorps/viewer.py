@@ -42,6 +42,7 @@ import html
 import json
 import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
 
@@ -129,11 +130,15 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     data.mkdir(exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".png-", dir=data))
     try:
-        for k, step in enumerate(steps):
-            images = {name: _png_pair(values[::step, ::step], ranges[name], scratch)
-                      for name, values in maps.items()}
-            (data / f"level{k}.js").write_text(
-                f"colorpsLevel({k}, {json.dumps(images)});\n", encoding="utf-8")
+        # OpenImageIO's PNG encoder releases the GIL: the maps encode in parallel.
+        with ThreadPoolExecutor() as pool:
+            for k, step in enumerate(steps):
+                pending = {name: pool.submit(_png_pair, values[::step, ::step], ranges[name],
+                                             scratch / f"{k}-{name}")
+                           for name, values in maps.items()}
+                images = {name: job.result() for name, job in pending.items()}
+                (data / f"level{k}.js").write_text(
+                    f"colorpsLevel({k}, {json.dumps(images)});\n", encoding="utf-8")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     index = _index(result, steps, ranges, band_names, title)
@@ -153,14 +158,16 @@ def _maps(result: Reconstruction) -> dict[str, np.ndarray]:
             "codes": codes.astype(np.float32)}
 
 
-def _png_pair(values: np.ndarray, ranges, scratch: Path) -> list[str]:
-    """Data URLs of two 8-bit RGB PNGs: the high and the low bytes of the codes."""
+def _png_pair(values: np.ndarray, ranges, prefix: Path) -> list[str]:
+    """Data URLs of two 8-bit RGB PNGs: the high and the low bytes of the codes
+    (encoded through files named from ``prefix``)."""
     codes = np.zeros((*values.shape[:2], 3), dtype=np.uint16)
     for k, (lo, hi) in enumerate(ranges):
         codes[..., k] = encode(values[..., k], lo, hi)
     urls = []
     for part, byte in (("high", codes >> 8), ("low", codes & 0xFF)):
-        path = write_image(scratch / f"{part}.png", byte.astype(np.float32) / 255.0,
+        path = write_image(prefix.with_name(f"{prefix.name}-{part}.png"),
+                           byte.astype(np.float32) / 255.0,
                            dtype="uint8")
         urls.append("data:image/png;base64," + base64.b64encode(path.read_bytes()).decode())
     return urls
