@@ -375,7 +375,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 #: after installing, which spends about 45 s of a 2-core machine on it (the
 #: compiled kernels are cached beside the package, so later runs skip this).
 COMPILE_NOTICE = ("colorps: compiling its numba kernels for this machine (once after "
-                  "installing: about a minute; later runs load them from the cache)")
+                  "installing: 30 s to 2 minutes; later runs load them from the cache)")
 
 
 @contextlib.contextmanager
