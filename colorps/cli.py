@@ -450,7 +450,7 @@ def _run(args, received: list[int]) -> int:
                       f"({s.solved_from_light_subset} from a light subset; table "
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
                       f"{median:.2f}, {median * s.model_scale:.2f} in noise units before "
-                      f"the model scale {s.model_scale:.2f}; {s.seconds.total:.2f} s); "
+                      f"the model scale {s.model_scale:.2f}; {s.seconds.run:.2f} s in all); "
                       f"results in {args.out}/")
         elif args.command == "batch":
             return _batch(args)

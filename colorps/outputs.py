@@ -60,6 +60,7 @@ import contextlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
@@ -198,7 +199,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
                         scene_preview: np.ndarray | None = None,
                         report: dict | None = None, exports: Exports = Exports(),
                         overwrite: bool = False,
-                        finished: Future[Reconstruction] | None = None) -> list[Path]:
+                        finished: Future[Reconstruction] | None = None,
+                        progress: bool = False) -> list[Path]:
     """Write every output file of a reconstruction (see the module docstring).
 
     Parameters
@@ -212,7 +214,9 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         Linear scene image for overview.png (default: the albedo), whole or at
         the pixels it draws (see :func:`colorps.figures.overview`).
     report : dict, optional
-        Inputs and options to record in report.json beside the statistics.
+        Inputs and options to record in report.json beside the statistics; a
+        value with an ``as_dict()`` method (a :class:`~colorps.results.RunClock`)
+        is read when report.json is written, last.
     exports : Exports, optional
         Mesh files, normal.png's convention, the viewer, tiled .exr maps.
     overwrite : bool, optional
@@ -222,6 +226,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         integrates in a thread meanwhile): the files that need no height are
         written first, the height files, the viewer and report.json once it is
         done. An error it raises fails the whole write (nothing is left behind).
+    progress : bool, optional
+        A progress bar over the files, naming the one being written.
 
     Returns
     -------
@@ -232,7 +238,7 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
         raise OutputError("a mesh needs the height map; integrate the normals first")
     writers = _writers(result, channel_names, scene_preview, report, exports, finished)
     out = prepare_output_dir(out_dir, overwrite=overwrite)
-    return _write_folder(out, writers)
+    return _write_folder(out, writers, progress)
 
 
 def write_folder(out_dir, writers: dict[str, Callable[[Path], object]], *,
@@ -256,7 +262,7 @@ def write_folder(out_dir, writers: dict[str, Callable[[Path], object]], *,
     return _write_folder(out, writers)
 
 
-def _write_folder(out: Path, writers: dict) -> list[Path]:
+def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path]:
     """Write every file into a new folder beside ``out``, then swap it in.
 
     A new ``out`` appears whole, by one rename. An existing one that holds only
@@ -280,13 +286,16 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
         except OSError as exc:
             raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
         try:
-            with interrupts_kept():  # the mesh writer (trimesh) can swallow a Ctrl-C
+            with interrupts_kept(), _files_bar(len(writers), progress) as bar:
+                # (interrupts_kept: the mesh writer, trimesh, can swallow a Ctrl-C)
                 for name, write in writers.items():
+                    bar.set_postfix_str(name, refresh=True)
                     try:
                         write(tmp / name)
                     except OSError as exc:
                         raise OutputError(f"{out}: cannot write {name} "
                                           f"({exc.strerror or exc})") from None
+                    bar.update()
             if inside:
                 for name in writers:
                     _replace(tmp / name, out / name)
@@ -305,6 +314,14 @@ def _write_folder(out: Path, writers: dict) -> list[Path]:
                 folder.rmdir()
         raise
     return [out / name for name in writers]
+
+
+def _files_bar(total: int, progress: bool):
+    """A progress bar over files written (a do-nothing one without ``progress``)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="writing", unit="file", disable=not progress,
+                leave=False, file=sys.stderr)
 
 
 def _replace(source: Path, target: Path) -> None:
@@ -530,6 +547,8 @@ def _write_mesh(height, colours, path) -> None:
 
 
 def _jsonable(value):
+    if hasattr(value, "as_dict"):
+        return value.as_dict()
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):

@@ -60,7 +60,7 @@ from .outputs import (
 from .pairing import check_natural_order, pair_lights, pairing_record
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
-from .results import Reconstruction
+from .results import Reconstruction, RunClock
 from .tiles import StackFiles, reconstruct_tiled
 from .virtual import virtual_gauge
 
@@ -122,6 +122,8 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     (True, True)
     """
     options = options or Options()
+    clock = RunClock()
+    clock.start("checking")
     prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
     scene_paths = expand_paths(inputs.scene, name="scene")
     check_natural_order(scene_paths, inputs.scene, "scene")
@@ -137,12 +139,15 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         mask = read_mask(inputs.mask, stacks.shape[1:3])
         if not mask.any():
             raise InputError(f"{inputs.mask}: the mask selects no pixel (non-zero = solve)")
+    clock.start("reading")
     scene, names = _read_scene(stacks, options, plan, progress)
+    clock.start("gauge")
     run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
                   gauge=None if inputs.lights is not None else
                   StackModel.of_file(stacks.gauge_infos[0], options.encoding))
     gauge, gauge_stack, run, virtual, checked = _make_gauge(inputs, stacks, scene, run, mask,
                                                             progress)
+    clock.start("reconstruct")
     if plan.rows is not None:
         with dask_client(scheduler) as client:
             result, preview = reconstruct_tiled(
@@ -156,7 +161,11 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
     report["gauge_check"] = checked
-    return _save(result, out, run.options, plan, report, names, preview, overwrite)
+    report["run_seconds"] = clock  # taken when report.json is written, last
+    clock.start("writing")
+    result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)
+    seconds = dataclasses.replace(result.stats.seconds, run=clock.as_dict()["total"])
+    return dataclasses.replace(result, stats=dataclasses.replace(result.stats, seconds=seconds))
 
 
 @dataclass(frozen=True)
@@ -293,7 +302,7 @@ def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan
 
 
 def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report: dict,
-          names, preview, overwrite: bool) -> Reconstruction:
+          names, preview, overwrite: bool, progress: bool) -> Reconstruction:
     """Integrate the height and write every output file; the result with its height.
 
     A tiled run integrates first, in tiles (memory is what counts); an untiled
@@ -319,7 +328,7 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
                           viewer=options.viewer, exr_tile=TILED_EXR_SIDE if tiled else None)
         save_reconstruction(result, out, channel_names=names, scene_preview=preview,
                             report=report, exports=exports, overwrite=overwrite,
-                            finished=finished)
+                            finished=finished, progress=progress)
     return result if finished is None else finished.result()
 
 

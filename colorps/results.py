@@ -11,6 +11,7 @@ an untiled run.
 from __future__ import annotations
 
 import dataclasses
+import time
 import warnings
 from collections import Counter
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ __all__ = [
     "LOW_SOLVED_FRACTION",
     "Reconstruction",
     "ReconstructionStats",
+    "RunClock",
     "Timings",
     "combine_statistics",
     "low_solved_message",
@@ -38,7 +40,13 @@ LOW_SOLVED_FRACTION = 0.5
 
 @dataclass(frozen=True)
 class Timings:
-    """Seconds spent per stage (wall clock)."""
+    """Seconds spent per stage (wall clock).
+
+    ``total`` is :func:`colorps.reconstruct`'s; ``integration`` the height's,
+    and ``run`` the whole run's from reading the files to writing the last
+    (:func:`colorps.pipeline.reconstruct_files`; its phases are in
+    report.json's ``run_seconds``), when there were such stages.
+    """
 
     signatures: float
     grid: float
@@ -46,6 +54,44 @@ class Timings:
     refine: float
     total: float
     integration: float | None = None
+    run: float | None = None
+
+
+class RunClock:
+    """Wall-clock seconds of a run's phases, one after the other.
+
+    ``start(phase)`` ends the phase under way and starts the next;
+    :meth:`as_dict` gives every phase so far, the one under way up to the
+    call, and the total since the clock was made: report.json, written last,
+    takes it then, so it counts every phase before it.
+
+    Examples
+    --------
+    >>> clock = RunClock()
+    >>> clock.start("reading"); clock.start("writing")
+    >>> sorted(clock.as_dict())
+    ['reading', 'total', 'writing']
+    """
+
+    def __init__(self) -> None:
+        self._started = time.perf_counter()
+        self._seconds: dict[str, float] = {}
+        self._phase: tuple[str, float] | None = None
+
+    def start(self, phase: str) -> None:
+        now = time.perf_counter()
+        if self._phase is not None:
+            name, since = self._phase
+            self._seconds[name] = self._seconds.get(name, 0.0) + now - since
+        self._phase = (phase, now)
+
+    def as_dict(self) -> dict[str, float]:
+        now = time.perf_counter()
+        seconds = dict(self._seconds)
+        if self._phase is not None:
+            name, since = self._phase
+            seconds[name] = seconds.get(name, 0.0) + now - since
+        return {**seconds, "total": now - self._started}
 
 
 @dataclass(frozen=True)

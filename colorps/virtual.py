@@ -151,6 +151,9 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
                       stacklevel=2)
         return brdf, history
     rng = np.random.default_rng(0)
+    if progress:
+        print(f"brdf: fitting the scene's finish ({fits} rounds of matching and fitting)",
+              file=sys.stderr)
     for round_ in range(fits):
         brdf, record = _fit_round(data, lights, brdf, quick, mask, radius, rng)
         history.append(dict(round=round_ + 1, **record))
@@ -167,6 +170,10 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
             warnings.warn(f"brdf: the fitted finish matched the scene worse than a "
                           f"Lambertian one (median residual {fitted:.2f} vs {start:.2f}); "
                           "the virtual gauge is Lambertian", ColorPSWarning, stacklevel=2)
+        elif progress:
+            print(f"brdf: the fitted finish matched the scene no better than a Lambertian "
+                  f"one (median residual {fitted:.2f} vs {start:.2f}): dropped, the virtual "
+                  "gauge is Lambertian", file=sys.stderr)
         return BRDF.lambert(), history
     return brdf, history
 

@@ -212,3 +212,22 @@ def test_compiled_fit_passes_are_the_plain_formulas():
     rows, ws = design.reshape(-1, k - 1 + c), w.reshape(-1)
     assert np.allclose(normal, (rows * ws[:, None]).T @ rows)
     assert np.allclose(right, (rows * ws[:, None]).T @ target.reshape(-1))
+
+
+def test_a_dropped_finish_is_said(lights, monkeypatch, capsys):
+    """A fit that matches no better than Lambert is dropped, and the console says so."""
+    import colorps.virtual as virtual
+
+    rounds = iter([1.00, 1.01])  # the median residual of each round's starting gauge
+
+    def fake_round(data, lights, brdf, quick, mask, radius, rng):
+        return BRDF(specular=(0.1,), shininess=20), dict(pixels=1, rms_relative=0.1,
+                                                      match_residual_median=next(rounds))
+
+    monkeypatch.setattr(virtual, "_fit_round", fake_round)
+    stack = np.ones((len(lights.directions), 4, 4, 1), dtype=np.float32)
+    brdf, history = fit_scene_brdf(stack, lights, Options(read_noise=0.001, gain=0.0),
+                                   fits=2, progress=True)
+    err = capsys.readouterr().err
+    assert brdf == BRDF.lambert() and history[-1]["kept"] is False
+    assert "dropped" in err and "1.01 vs 1.00" in err

@@ -217,3 +217,18 @@ def test_summary_gives_the_residual_before_the_run_scale(sample, tmp_path, capsy
     absolute = stats["residual_median"] * stats["model_scale"]
     assert f"{absolute:.2f} in noise units before the model scale " \
            f"{stats['model_scale']:.2f}" in line
+
+
+def test_report_times_every_phase_and_writing_shows_progress(sample, tmp_path, capsys):
+    out = tmp_path / "timed"
+    assert main([a for a in args_for(sample, out) if a != "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "writing" in captured.err  # the files' progress bar
+    assert "s in all" in captured.out
+    report = json.loads((out / "report.json").read_text())
+    run = report["run_seconds"]
+    assert {"checking", "reading", "gauge", "reconstruct", "writing", "total"} <= set(run)
+    phases = sum(v for k, v in run.items() if k != "total")
+    assert phases <= run["total"] + 1e-6 and phases > 0.9 * run["total"]
+    assert run["reconstruct"] >= report["statistics"]["seconds"]["total"] - 0.05
+    assert run["writing"] >= report["statistics"]["seconds"]["integration"] - 0.05
