@@ -13,13 +13,15 @@ folder lists every capture's outcome.
 Folder convention (first match wins)
 ------------------------------------
 =================  ==========================================================
-scene images       ``scene_*`` (EXR, TIFF, PNG, JPEG), else the files listed in
+scene images       ``scene_*`` in any format reconstruct reads
+                   (:func:`colorps.io.image_suffixes`: EXR, TIFF, PNG, JPEG,
+                   HDR, TGA, BMP, ...), else the files listed in
                    ``filenames.txt`` (DiLiGenT)
 gauge              ``gauge_*`` images with the sphere found automatically, else
                    a light file ``lights.txt`` / ``lights.lp`` / ``lights.json``
                    / ``light_directions.txt`` (with ``light_intensities.txt``
                    when present): a virtual gauge
-mask               ``mask.png`` when present
+mask               ``mask.*`` in any of those formats, when present
 =================  ==========================================================
 
 Manifest
@@ -41,10 +43,10 @@ from pathlib import Path
 from .errors import ColorPSError, InputError, OutputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 from .inputs import CaptureFiles
+from .io import image_suffixes
 from .options import Options
 
 __all__ = [
-    "IMAGE_SUFFIXES",
     "LIGHT_FILES",
     "CaptureOutcome",
     "CaptureSpec",
@@ -53,8 +55,6 @@ __all__ = [
     "run_batch",
 ]
 
-#: Image files a capture folder's ``scene_*`` and ``gauge_*`` may be.
-IMAGE_SUFFIXES = (".exr", ".tif", ".tiff", ".png", ".jpg", ".jpeg")
 #: Light files a capture folder may hold instead of gauge images, in that order.
 LIGHT_FILES = ("lights.txt", "lights.lp", "lights.json", "light_directions.txt")
 
@@ -120,11 +120,20 @@ class CaptureOutcome:
 def _one_suffix(folder: Path, prefix: str) -> str | None:
     """The file suffix of a folder's ``prefix*`` images (None: there are none)."""
     suffixes = {p.suffix for p in folder.glob(prefix + "*")
-                if p.suffix.lower() in IMAGE_SUFFIXES}
+                if p.suffix.lower() in image_suffixes()}
     if len(suffixes) > 1:
         raise InputError(f"{folder}: its {prefix}* images come in several formats "
                          f"({', '.join(sorted(suffixes))}); keep one")
     return suffixes.pop() if suffixes else None
+
+
+def _mask_file(folder: Path) -> str | None:
+    """The folder's ``mask.*`` image, if any (refused when there are several)."""
+    masks = sorted(p for p in folder.glob("mask.*") if p.suffix.lower() in image_suffixes())
+    if len(masks) > 1:
+        raise InputError(f"{folder}: holds several masks ({', '.join(p.name for p in masks)}); "
+                         "keep one")
+    return str(masks[0]) if masks else None
 
 
 def find_capture(folder) -> CaptureSpec:
@@ -145,10 +154,11 @@ def find_capture(folder) -> CaptureSpec:
     elif (folder / "filenames.txt").is_file():
         scene = [f"@{folder / 'filenames.txt'}"]
     else:
-        raise InputError(f"{folder}: holds no scene_* images and no filenames.txt")
-    mask = folder / "mask.png"
-    common = dict(name=folder.name, scene=scene,
-                  mask=str(mask) if mask.is_file() else None)
+        others = sorted({p.suffix for p in folder.glob("scene_*")})
+        found = f" (scene_* files found are {', '.join(others)}: not images colorps reads)" \
+            if others else ""
+        raise InputError(f"{folder}: holds no scene_* images and no filenames.txt{found}")
+    common = dict(name=folder.name, scene=scene, mask=_mask_file(folder))
     gauge_suffix = _one_suffix(folder, "gauge_")
     if gauge_suffix:
         return CaptureSpec(gauge=[str(folder / f"gauge_*{gauge_suffix}")], sphere="auto",

@@ -249,8 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="reconstruct many captures (folders or a manifest), one per "
                               "task, locally or on a Dask cluster")
     bat.add_argument("folders", nargs="*", metavar="FOLDER",
-                     help="capture folders: scene_* images, gauge_* images or a light "
-                          "file, optional mask.png (see colorps.batch)")
+                     help="capture folders: scene_* images (any format reconstruct "
+                          "reads: EXR, TIFF, PNG, JPEG, HDR, TGA, ...), gauge_* images or "
+                          "a light file, optional mask.* (see colorps.batch)")
     bat.add_argument("--manifest", metavar="FILE.json",
                      help="a JSON list of captures instead of (or besides) folders")
     bat.add_argument("--out", required=True, metavar="DIR",

@@ -24,6 +24,7 @@ import tempfile
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
@@ -39,6 +40,7 @@ __all__ = [
     "check_stack_files",
     "expand_paths",
     "file_mode",
+    "image_suffixes",
     "input_levels",
     "pixel_type",
     "read_image",
@@ -66,6 +68,32 @@ CAMERA_RAW_SUFFIXES = frozenset([
     ".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".fff", ".iiq", ".k25",
     ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw", ".rw2",
     ".rwl", ".sr2", ".srf", ".srw", ".x3f"])
+
+
+#: OpenImageIO formats that are not image files of a capture.
+_NOT_CAPTURE_FORMATS = ("null", "term")
+
+
+@lru_cache(maxsize=1)
+def image_suffixes() -> frozenset[str]:
+    """File name suffixes (lower case, with the dot) of the image formats colorps
+    reads: every format of this OpenImageIO build but camera raw.
+
+    Examples
+    --------
+    >>> {".exr", ".tif", ".png", ".jpg", ".hdr"} <= image_suffixes()
+    True
+    >>> ".nef" in image_suffixes()
+    False
+    """
+    import OpenImageIO as oiio
+
+    found = set()
+    for entry in oiio.get_string_attribute("extension_list").split(";"):
+        name, _, extensions = entry.partition(":")
+        if name not in _NOT_CAPTURE_FORMATS:
+            found.update(f".{e.lower()}" for e in extensions.split(",") if e)
+    return frozenset(found - CAMERA_RAW_SUFFIXES)
 
 
 #: Header attributes of a photo's exposure (OpenImageIO's names of the EXIF

@@ -1,6 +1,7 @@
 """colorps batch: capture folders and manifests, in process and on a Dask cluster."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -134,3 +135,27 @@ def test_a_scheduler_address_dask_cannot_read_is_one_line(captures, tmp_path, ca
     assert len(err) == 1 and "not a Dask scheduler address" in err[0]
     assert "tcp://HOST:8786" in err[0] and "Traceback" not in err[0]
     assert not out.exists()
+
+
+def test_any_readable_format_and_mask_name(tmp_path):
+    """TGA and HDR captures with a mask.tif are found; another suffix is not an image."""
+    from colorps.io import write_image
+
+    folder = tmp_path / "tga"
+    folder.mkdir()
+    for k in range(4):
+        write_image(folder / f"scene_{k}.tga", np.full((8, 8, 3), 0.5), dtype="uint8")
+        write_image(folder / f"gauge_{k}.hdr", np.full((8, 8, 3), 0.5))
+    write_image(folder / "mask.tif", np.ones((8, 8)), dtype="uint8")
+    (folder / "scene_notes.txt").write_text("not an image")
+    spec = find_capture(folder)
+    assert spec.scene == [str(folder / "scene_*.tga")]
+    assert spec.gauge == [str(folder / "gauge_*.hdr")] and spec.mask.endswith("mask.tif")
+    write_image(folder / "mask.png", np.ones((8, 8)), dtype="uint8")
+    with pytest.raises(InputError, match=re.escape("several masks (mask.png, mask.tif)")):
+        find_capture(folder)
+    odd = tmp_path / "odd"
+    odd.mkdir()
+    (odd / "scene_1.xyz").write_text("?")
+    with pytest.raises(InputError, match=re.escape("scene_* files found are .xyz: not images")):
+        find_capture(odd)
