@@ -30,13 +30,13 @@ PHASES = (
     ("colorps.io", "read_stack", "read images"),
     ("colorps.gauge", "find_sphere", "find the gauge sphere"),
     ("colorps.reconstruct", "_setup", "signatures, noise model"),
-    ("colorps.reconstruct", "_first_match", "first matches (tables, grids, lookups)"),
-    ("colorps.reconstruct", "_light_subsets", "light subsets"),
+    ("colorps.reconstruct", "match_pixels", "matching (tables, grids, lookups, subsets)"),
     ("colorps.reconstruct", "_refine", "sub-pixel refinement"),
     ("colorps.reconstruct", "_albedo", "albedo"),
     ("colorps.reconstruct", "_reasons", "reasons"),
     ("colorps.integrate", "integrate", "height integration (thread)"),
     ("colorps.outputs", "_write_folder", "write every file"),
+    ("colorps.viewer", "write_viewer", "the viewer (within writing)"),
 )
 #: Resident memory is sampled this often (seconds).
 SAMPLE_SECONDS = 0.02

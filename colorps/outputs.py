@@ -63,7 +63,7 @@ import shutil
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -117,6 +117,8 @@ HEIGHT_FILES = ("height.exr", "height.tif", "height.png", "relief.png", "overvie
 #: Written when asked for, by kind.
 MESH_FILES = {"ply": "mesh.ply", "obj": "mesh.obj"}
 _ALL_FILES = OUTPUT_FILES + HEIGHT_FILES + tuple(MESH_FILES.values())
+#: Files written at once (OpenImageIO's encoders release the GIL): one per core.
+WRITE_THREADS = os.cpu_count() or 1
 #: Tile side (pixels) of the .exr maps of a tiled run (OpenEXR's usual 64).
 TILED_EXR_SIDE = 64
 _CONVENTIONS = ("camera-space normals: x right, y up, z towards the camera; "
@@ -286,16 +288,8 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
         except OSError as exc:
             raise OutputError(f"{out}: cannot create output folder ({exc.strerror})") from None
         try:
-            with interrupts_kept(), _files_bar(len(writers), progress) as bar:
-                # (interrupts_kept: the mesh writer, trimesh, can swallow a Ctrl-C)
-                for name, write in writers.items():
-                    bar.set_postfix_str(name, refresh=True)
-                    try:
-                        write(tmp / name)
-                    except OSError as exc:
-                        raise OutputError(f"{out}: cannot write {name} "
-                                          f"({exc.strerror or exc})") from None
-                    bar.update()
+            with interrupts_kept():  # (the mesh writer, trimesh, can swallow a Ctrl-C)
+                _run_writers(writers, tmp, out, progress)
             if inside:
                 for name in writers:
                     _replace(tmp / name, out / name)
@@ -314,6 +308,33 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
                 folder.rmdir()
         raise
     return [out / name for name in writers]
+
+
+def _run_writers(writers: dict, tmp: Path, out: Path, progress: bool) -> None:
+    """Call every writer on its path in ``tmp``, WRITE_THREADS at a time (the
+    encoders release the GIL), the last one (report.json) after all the others;
+    on a failure or an interrupt, no writer is still running when this returns."""
+    *first, last = writers
+
+    def write(name):
+        try:
+            writers[name](tmp / name)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot write {name} ({exc.strerror or exc})") from None
+        return name
+
+    with _files_bar(len(first), progress) as bar, \
+            ThreadPoolExecutor(WRITE_THREADS, thread_name_prefix="colorps-write") as pool:
+        jobs = [pool.submit(write, name) for name in first]
+        try:
+            for job in as_completed(jobs):
+                bar.set_postfix_str(job.result(), refresh=False)
+                bar.update()
+        except BaseException:
+            for job in jobs:
+                job.cancel()
+            raise  # leaving the pool waits for the writers under way
+    write(last)
 
 
 def _files_bar(total: int, progress: bool):
