@@ -14,7 +14,7 @@ Folder convention (first match wins)
 ------------------------------------
 =================  ==========================================================
 scene images       ``scene_*`` in any format reconstruct reads
-                   (:func:`colorps.io.image_suffixes`: EXR, TIFF, PNG, JPEG,
+                   (:func:`colorps.formats.image_suffixes`: EXR, TIFF, PNG, JPEG,
                    HDR, TGA, BMP, ...), else the files listed in
                    ``filenames.txt`` (DiLiGenT)
 gauge              ``gauge_*`` images with the sphere found automatically, else
@@ -41,9 +41,9 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 from .errors import ColorPSError, InputError, OutputError
+from .formats import image_suffixes
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 from .inputs import CaptureFiles
-from .io import image_suffixes
 from .options import Options
 
 __all__ = [

@@ -24,13 +24,13 @@ import tempfile
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from .errors import ImageReadError, InputError, LossyInputWarning, OutputError
+from .formats import CAMERA_RAW_SUFFIXES
 from .options import FLOAT_DARK_LEVEL
 
 __all__ = [
@@ -40,7 +40,6 @@ __all__ = [
     "check_stack_files",
     "expand_paths",
     "file_mode",
-    "image_suffixes",
     "input_levels",
     "pixel_type",
     "read_image",
@@ -61,41 +60,6 @@ _MAX_CODE = {"uint8": 255, "int8": 127, "uint16": 65535, "int16": 32767,
              "uint32": 4294967295, "int32": 2147483647}
 #: Dark level of integer files, in codes of the file's pixel type.
 DARK_CODES = 2.0
-#: File name suffixes of camera raw formats, which colorps does not decode
-#: (demosaicing and white balance are a raw converter's job): such a file is
-#: refused with advice on converting it to a linear TIFF.
-CAMERA_RAW_SUFFIXES = frozenset([
-    ".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".fff", ".iiq", ".k25",
-    ".kdc", ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".raw", ".rw2",
-    ".rwl", ".sr2", ".srf", ".srw", ".x3f"])
-
-
-#: OpenImageIO formats that are not image files of a capture.
-_NOT_CAPTURE_FORMATS = ("null", "term")
-
-
-@lru_cache(maxsize=1)
-def image_suffixes() -> frozenset[str]:
-    """File name suffixes (lower case, with the dot) of the image formats colorps
-    reads: every format of this OpenImageIO build but camera raw.
-
-    Examples
-    --------
-    >>> {".exr", ".tif", ".png", ".jpg", ".hdr"} <= image_suffixes()
-    True
-    >>> ".nef" in image_suffixes()
-    False
-    """
-    import OpenImageIO as oiio
-
-    found = set()
-    for entry in oiio.get_string_attribute("extension_list").split(";"):
-        name, _, extensions = entry.partition(":")
-        if name not in _NOT_CAPTURE_FORMATS:
-            found.update(f".{e.lower()}" for e in extensions.split(",") if e)
-    return frozenset(found - CAMERA_RAW_SUFFIXES)
-
-
 #: Header attributes of a photo's exposure (OpenImageIO's names of the EXIF
 #: tags) and what colorps calls them: seconds, f-number, ISO sensitivity.
 EXPOSURE_ATTRIBUTES = {"ExposureTime": "time", "FNumber": "f_number",

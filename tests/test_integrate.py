@@ -180,3 +180,98 @@ def test_tiled_integration_stays_close_to_one_solve():
         integrate(normals, mask, tile=4)
     with pytest.raises(InputError, match="only method 'poisson'"):
         integrate(scene.normals, method="dct", tile=64)
+
+
+# ------------------------------------------------- multigrid against pyamg's AMG
+def _components(mask, weights):
+    """Labels of the pixels linked by pairs of positive weight (the parts whose
+    height offsets the normals cannot fix)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    w = np.ones(mask.shape) if weights is None else weights
+    index = np.arange(mask.size).reshape(mask.shape)
+    pairs = []
+    for a, b, wa, wb, both in ((index[:, :-1], index[:, 1:], w[:, :-1], w[:, 1:],
+                                mask[:, :-1] & mask[:, 1:]),
+                               (index[:-1], index[1:], w[:-1], w[1:], mask[:-1] & mask[1:])):
+        keep = both & (np.minimum(wa, wb) > 0)
+        pairs.append((a[keep], b[keep]))
+    a = np.concatenate([p[0] for p in pairs])
+    b = np.concatenate([p[1] for p in pairs])
+    graph = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(mask.size, mask.size))
+    return connected_components(graph, directed=False)[1].reshape(mask.shape)
+
+
+def _mg_and_amg(mask, weights=None, anchor=None, seed=0, tol=1e-10):
+    """Heights of both solvers on random slopes, each part shifted to zero mean."""
+    from colorps.integrate import _integrate_poisson, _integrate_poisson_amg
+
+    rng = np.random.default_rng(seed)
+    gx, grow = rng.normal(0, 1, mask.shape), rng.normal(0, 1, mask.shape)
+    labels = _components(mask, weights)
+    out = []
+    for solver in (_integrate_poisson, _integrate_poisson_amg):
+        z = np.full(mask.shape, np.nan)
+        z[mask] = solver(gx, grow, mask, weights, tol, anchor)
+        for part in np.unique(labels[mask]):
+            pixels = labels == part
+            if anchor is None or not np.isfinite(anchor[pixels & mask]).any():
+                z[pixels] -= z[pixels].mean()  # a free offset
+        out.append(z)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (9, 1), (2, 2), (17, 33), (64, 65)])
+def test_multigrid_matches_amg_on_rectangles_of_any_size(shape):
+    mg, amg = _mg_and_amg(np.ones(shape, dtype=bool))
+    np.testing.assert_allclose(mg, amg, atol=1e-4)
+
+
+def test_multigrid_matches_amg_on_holes_parts_weights_and_anchors():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:150, 0:201]
+    mask = ((x - 70) ** 2 + (y - 75) ** 2 < 60 ** 2) | ((x > 150) & (y > 20) & (y < 140))
+    mask &= ~ndimage.binary_dilation(rng.random(mask.shape) < 0.002, iterations=3)
+    mask[5, 5] = mask[5, 7] = True  # lone pixels: parts of their own
+    assert ndimage.label(mask)[1] >= 4
+    mg, amg = _mg_and_amg(mask)
+    np.testing.assert_allclose(mg, amg, atol=1e-4)
+    weights = rng.gamma(1.0, 1.0, mask.shape) * (rng.random(mask.shape) > 0.05)  # some 0
+    mg, amg = _mg_and_amg(mask, weights)
+    # A pixel whose every pair has weight 0 has no height information: the
+    # multigrid keeps it at 0, the AMG anywhere its tolerance allows.
+    coupled = np.zeros(mask.shape, dtype=bool)
+    pair_x = mask[:, :-1] & mask[:, 1:] & (np.minimum(weights[:, :-1], weights[:, 1:]) > 0)
+    pair_y = mask[:-1] & mask[1:] & (np.minimum(weights[:-1], weights[1:]) > 0)
+    coupled[:, :-1] |= pair_x
+    coupled[:, 1:] |= pair_x
+    coupled[:-1] |= pair_y
+    coupled[1:] |= pair_y
+    np.testing.assert_allclose(mg[coupled], amg[coupled], atol=1e-4)
+    anchor = np.full(mask.shape, np.nan)
+    anchor[:, 0] = anchor[:, -1] = 2.5
+    anchor[0, :] = -1.0
+    mg, amg = _mg_and_amg(mask, weights, anchor)
+    np.testing.assert_allclose(mg[coupled], amg[coupled], atol=1e-4)
+
+
+def test_multigrid_solves_the_system_it_is_given():
+    """The residual of the returned heights is within the tolerance asked for."""
+    from colorps._mg_kernels import residual
+    from colorps.integrate import _grid_equations
+    from colorps.multigrid import solve
+
+    y, x = np.mgrid[0:300, 0:257]
+    mask = (x - 128) ** 2 + (y - 150) ** 2 < 120 ** 2
+    rng = np.random.default_rng(0)
+    system, rhs = _grid_equations(rng.normal(0, 1, mask.shape), rng.normal(0, 1, mask.shape),
+                                  mask, None, None)
+    for tol in (1e-4, 1e-8):
+        u, iterations = solve(system, rhs, tol=tol)
+        r = np.empty_like(u)
+        residual(u, rhs, system.east, system.south, system.diag, r)
+        assert np.linalg.norm(r) <= tol * np.linalg.norm(rhs)
+        assert iterations < 40 and (u[~mask] == 0).all()
