@@ -12,20 +12,30 @@ The centre is the intensity-weighted centroid of the connected bright blob
 around the brightest pixel (pixels above half-way from the sphere's median to
 the peak), which also finds the centre of a clipped, flat-topped highlight.
 How sure a direction is shows in its report: the highlight's size, its clipped
-pixels, its contrast, and ``degrees_per_pixel``, how far the light moves when
-the centre is off by one pixel (2 / (r nz) radians: large near the rim).
+pixels, its contrast, ``degrees_per_pixel``, how far the light moves when the
+centre is off by one pixel (2 / (r nz) radians: large near the rim), and
+``rival``, the peak of the brightest other blob over the chosen one's.
+
+A second bright blob (a window, a lamp's housing, a reflection of the room)
+makes an image **ambiguous** when its peak rises at least RIVAL_LEVEL of the
+brightest's height above the sphere's median: of such candidates :func:`calibrate_lights` takes the one most like
+the capture's unambiguous highlights (their median size: one light source
+makes highlights of one size on one sphere), and warns, naming the image and
+both positions. With no unambiguous image to compare with, it refuses.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import ColorPSWarning, InputError
 from .lights import Lights
 
-__all__ = ["Highlight", "calibrate_lights", "find_highlight"]
+__all__ = ["AmbiguousHighlightWarning", "Highlight", "calibrate_lights", "find_highlight",
+           "highlight_candidates", "sphere_from_mask"]
 
 # ---------------------------------------------------------------- tuning
 #: Only pixels within this fraction of the radius are searched (the rim is
@@ -40,6 +50,15 @@ MIN_CONTRAST = 4.0
 #: A highlight covering more of the disk than this is not a point light's
 #: reflection (a matte sphere, an area light, overexposure): refused.
 MAX_HIGHLIGHT_FRACTION = 0.05
+#: Another blob whose peak rises this fraction of the brightest's height above
+#: the sphere's median makes the image ambiguous (see the module docstring): a
+#: light's highlight is then still a candidate beside a reflection up to 4
+#: times as bright.
+RIVAL_LEVEL = 0.25
+
+
+class AmbiguousHighlightWarning(ColorPSWarning):
+    """A mirror-sphere image shows more than one bright blob that could be the light."""
 
 
 @dataclass(frozen=True)
@@ -60,6 +79,9 @@ class Highlight:
         Peak over the sphere's median level.
     degrees_per_pixel : float
         Change of the direction per pixel of error in the centre.
+    rival : float
+        Peak of the brightest other candidate blob over this one's (0: none
+        above RIVAL_LEVEL; 1 or more: the chosen blob is not the brightest).
     """
 
     x: float
@@ -69,16 +91,19 @@ class Highlight:
     clipped: int
     contrast: float
     degrees_per_pixel: float
+    rival: float = 0.0
 
     def as_dict(self) -> dict:
         return dict(x=self.x, y=self.y, direction=self.direction.tolist(), pixels=self.pixels,
                     clipped=self.clipped, contrast=self.contrast,
-                    degrees_per_pixel=self.degrees_per_pixel)
+                    degrees_per_pixel=self.degrees_per_pixel, rival=self.rival)
 
 
 def find_highlight(image, sphere: tuple[float, float, float], *,
                    clip_level: float | None = None, name: str = "image") -> Highlight:
-    """The highlight of a mirror sphere in one image, and its light direction.
+    """The highlight of a mirror sphere in one image, and its light direction: the
+    brightest of :func:`highlight_candidates`, with ``rival`` the next one's peak
+    over its own.
 
     Parameters
     ----------
@@ -108,6 +133,22 @@ def find_highlight(image, sphere: tuple[float, float, float], *,
     >>> bool(np.degrees(np.arccos(found.direction @ lights.directions[0, 0])) < 0.3)
     True
     """
+    return highlight_candidates(image, sphere, clip_level=clip_level, name=name)[0]
+
+
+def highlight_candidates(image, sphere: tuple[float, float, float], *,
+                         clip_level: float | None = None, name: str = "image"
+                         ) -> list[Highlight]:
+    """Every blob of a mirror-sphere image that could be the light's highlight,
+    brightest first: the blob around the brightest pixel, and each other blob
+    whose peak rises RIVAL_LEVEL of its height above the sphere's median (each
+    with ``rival`` set to the peak of the brightest other candidate over its own).
+
+    Raises
+    ------
+    InputError
+        As :func:`find_highlight`.
+    """
     from skimage import measure
 
     values = np.asarray(image, dtype=np.float64)
@@ -121,21 +162,52 @@ def find_highlight(image, sphere: tuple[float, float, float], *,
     if not disk.any():
         raise InputError(f"{name}: the sphere {cx:g},{cy:g},{r:g} lies outside the image")
     level = float(np.median(values[disk]))
-    peak_at = np.unravel_index(np.argmax(np.where(disk, values, -np.inf)), values.shape)
-    peak = float(values[peak_at])
+    inside = np.where(disk, values, -np.inf)
+    peak = float(inside.max())
     contrast = peak / level if level > 0 else np.inf
     if not (peak > 0 and contrast >= MIN_CONTRAST):
         raise InputError(f"{name}: no highlight on the mirror sphere (peak {peak:.3g} is "
                          f"{contrast:.2g}x the sphere's median; at least {MIN_CONTRAST:g}x "
                          "needed): is the light in front of the sphere, and the sphere right?")
+    labels = measure.label(disk & (values >= level + RIVAL_LEVEL * (peak - level)),
+                           connectivity=2)
+    peaks = np.zeros(labels.max() + 1)
+    np.maximum.at(peaks, labels.ravel(), np.where(labels > 0, values, 0.0).ravel())
+    order = [k for k in np.argsort(-peaks) if k > 0]
+    found = []
+    for k in order:
+        at = np.unravel_index(np.argmax(np.where(labels == k, values, -np.inf)), values.shape)
+        found.append(_highlight(values, at, level, disk, (cx, cy, r), clip_level, name,
+                                (x, y)))
+    found = [f for f in found if f is not None]
+    if not found:
+        raise InputError(f"{name}: the highlight covers more than "
+                         f"{MAX_HIGHLIGHT_FRACTION:.0%} of the sphere: not the reflection of "
+                         "a point light (a matte sphere, an area light or overexposure?)")
+    peaks_of = [f.contrast for f in found]
+    return [_with_rival(f, max((p for j, p in enumerate(peaks_of) if j != i), default=0.0))
+            for i, f in enumerate(found)]
+
+
+def _with_rival(found: Highlight, other_contrast: float) -> Highlight:
+    from dataclasses import replace
+
+    return replace(found, rival=other_contrast / found.contrast if other_contrast else 0.0)
+
+
+def _highlight(values, peak_at, level, disk, sphere, clip_level, name, grid):
+    """The highlight blob around ``peak_at`` and its direction (None: too large)."""
+    from skimage import measure
+
+    cx, cy, r = sphere
+    x, y = grid
+    peak = float(values[peak_at])
     threshold = level + HIGHLIGHT_LEVEL * (peak - level)
     labels = measure.label(disk & (values >= threshold), connectivity=2)
     blob = labels == labels[peak_at]
     pixels = int(blob.sum())
     if pixels > MAX_HIGHLIGHT_FRACTION * disk.sum():
-        raise InputError(f"{name}: the highlight covers {pixels / disk.sum():.0%} of the "
-                         "sphere: not the reflection of a point light (a matte sphere, an "
-                         "area light or overexposure?)")
+        return None
     weight = values[blob] - threshold + 1e-12 * peak
     hx = float((x[blob] * weight).sum() / weight.sum())
     hy = float((y[blob] * weight).sum() / weight.sum())
@@ -145,14 +217,40 @@ def find_highlight(image, sphere: tuple[float, float, float], *,
     direction = 2.0 * nz * normal - np.array([0.0, 0.0, 1.0])
     direction /= np.linalg.norm(direction)
     clipped = int((values[blob] >= clip_level).sum()) if clip_level is not None else 0
+    contrast = peak / level if level > 0 else np.inf
     return Highlight(hx, hy, direction, pixels, clipped, float(contrast),
                      float(np.degrees(2.0 / (r * max(nz, 1e-3)))))
+
+
+def sphere_from_mask(mask) -> tuple[float, float, float]:
+    """(cx, cy, r) of the sphere a mask image shows: the largest connected region's
+    centroid and the radius of a disk of its area (scikit-image's region
+    properties).
+
+    Raises
+    ------
+    InputError
+        The mask selects no pixel.
+    """
+    from skimage import measure
+
+    labels = measure.label(np.asarray(mask, bool))
+    regions = measure.regionprops(labels)
+    if not regions:
+        raise InputError("sphere mask: selects no pixel")
+    largest = max(regions, key=lambda region: region.area)
+    cy, cx = largest.centroid
+    return float(cx), float(cy), float(np.sqrt(largest.area / np.pi))
 
 
 def calibrate_lights(stack, sphere: tuple[float, float, float], *,
                      clip_level: float | None = None, names=None
                      ) -> tuple[Lights, list[Highlight]]:
     """Light directions of a capture from its mirror-sphere images.
+
+    In an ambiguous image (module docstring) the candidate whose size is
+    closest (in ratio) to the median size of the unambiguous images' highlights
+    is taken, with an :class:`AmbiguousHighlightWarning`.
 
     Parameters
     ----------
@@ -170,10 +268,34 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
         measure them reliably).
     list of Highlight
         What each image showed.
+
+    Raises
+    ------
+    InputError
+        An image without a highlight, or ambiguous images and no unambiguous
+        one to compare them with.
     """
     images = np.asarray(stack)
     names = list(names) if names is not None else [f"image {k}" for k in range(len(images))]
-    found = [find_highlight(image, sphere, clip_level=clip_level, name=name)
-             for image, name in zip(images, names, strict=True)]
+    candidates = [highlight_candidates(image, sphere, clip_level=clip_level, name=name)
+                  for image, name in zip(images, names, strict=True)]
+    clear = [c[0].pixels for c in candidates if len(c) == 1]
+    found = []
+    for name, options in zip(names, candidates):
+        if len(options) == 1:
+            found.append(options[0])
+            continue
+        where = ", ".join(f"({o.x:.0f}, {o.y:.0f}) {o.pixels} px" for o in options)
+        if not clear:
+            raise InputError(f"{name}: {len(options)} bright blobs on the mirror sphere "
+                             f"({where}) and no image with a single one to tell the light's "
+                             "highlight by: mask the other reflections or give cleaner images")
+        typical = float(np.median(clear))
+        chosen = min(options, key=lambda o: abs(np.log(o.pixels / typical)))
+        warnings.warn(f"{name}: {len(options)} bright blobs on the mirror sphere ({where}); "
+                      f"took the one at ({chosen.x:.0f}, {chosen.y:.0f}), the size of the "
+                      f"other images' highlights ({typical:.0f} px): check this light",
+                      AmbiguousHighlightWarning, stacklevel=2)
+        found.append(chosen)
     return Lights(np.array([f.direction for f in found]),
                   names=tuple(str(n) for n in names)), found

@@ -280,8 +280,11 @@ def build_parser() -> argparse.ArgumentParser:
                          help="light directions from the highlight on a mirror sphere")
     cal.add_argument("images", nargs="+", metavar="IMAGES",
                      help="mirror-sphere images (globs or paths), one per light, in order")
-    cal.add_argument("--sphere", type=_sphere, required=True, metavar="auto|CX,CY,R",
+    cal.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="sphere silhouette in pixels, or 'auto' to find it")
+    cal.add_argument("--sphere-mask", metavar="FILE",
+                     help="instead of --sphere: a mask image of the sphere (non-zero on "
+                          "it), for a dark sphere 'auto' cannot find")
     cal.add_argument("--out", required=True, metavar="FILE",
                      help="light file to write: .txt, .lp or .json")
     cal.add_argument("--overwrite", action="store_true", help="replace an existing file")
@@ -463,16 +466,17 @@ def _run(args, received: list[int]) -> int:
             print(f"integrated {inside.sum()} pixels; relief depth "
                   f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")
         elif args.command == "calibrate-lights":
-            lights, found, sphere = calibrate_lights_files(args.images, args.sphere, args.out,
-                                                           overwrite=args.overwrite)
+            lights, found, sphere = calibrate_lights_files(
+                args.images, args.sphere, args.out, sphere_mask=args.sphere_mask,
+                overwrite=args.overwrite)
             print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
             print(f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>4s} "
-                  f"{'clip':>4s} {'deg/px':>6s}")
+                  f"{'clip':>4s} {'deg/px':>6s} {'rival':>5s}")
             for name, f in zip(lights.names, found):
                 x, y, z = f.direction
                 print(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
                       f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
-                      f"{f.clipped:4d} {f.degrees_per_pixel:6.2f}")
+                      f"{f.clipped:4d} {f.degrees_per_pixel:6.2f} {f.rival:5.2f}")
             print(f"wrote {len(found)} light directions to {args.out}")
         elif args.command == "relight":
             from .relight import relight_files

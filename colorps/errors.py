@@ -8,6 +8,7 @@ a non-zero exit code instead of a traceback.
 __all__ = [
     "ColorPSError",
     "ColorPSWarning",
+    "EncodingWarning",
     "ExposureWarning",
     "GaugeError",
     "GaugeWarning",
@@ -59,6 +60,10 @@ class LossyInputWarning(ColorPSWarning):
 
 class PairingWarning(ColorPSWarning):
     """Images and lights may be paired wrongly (order, names)."""
+
+
+class EncodingWarning(ColorPSWarning):
+    """Integer files fit far better decoded the other way (sRGB or linear)."""
 
 
 class ExposureWarning(ColorPSWarning):

@@ -1,4 +1,5 @@
-"""Does the gauge look like a lit sphere? A check of its images against its geometry.
+"""Does the gauge look like a lit sphere, and the scene like its lights? Checks of
+the images against what they should show, and the choice of their encoding.
 
 Every gauge image, under one distant light, should shade its sphere like a
 matte ball: I(q) = max(0, n(q) . L) with n(q) the sphere's normal at pixel q
@@ -13,8 +14,13 @@ place. Two mistakes show so:
   (:func:`check_gauge` warns, naming the first gauge file);
 * **the wrong encoding**: 8- or 16-bit files decoded as sRGB that are linear
   (or the other way): the fit of the other decoding is much better
-  (under ENCODING_RATIO of this one's), and :func:`check_gauge` warns with
-  the ``--encoding`` to use.
+  (under ENCODING_RATIO of this one's). Under ``--encoding auto`` the files
+  are then read as linear (the record's ``decoded_as``, with a warning that
+  says so); with an explicit ``--encoding`` the warning gives the one to use.
+
+With calibrated lights and no gauge, :func:`check_lights` asks the same of the
+scene: each pixel's measurements fitted as a matte surface under the known
+lights (:func:`lights_fit`).
 """
 
 from __future__ import annotations
@@ -24,10 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GaugeWarning
+from .errors import EncodingWarning, GaugeWarning
 from .gauge import Gauge
+from .lights import Lights
 
-__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "sphere_fit"]
+__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "lights_fit",
+           "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -42,6 +50,8 @@ ENCODING_RATIO = 0.5
 LIT_FRACTION = 0.1
 #: Rounds of fitting the light and choosing the pixels it lights.
 FIT_ROUNDS = 3
+#: Scene pixels sampled for :func:`lights_fit`.
+LIGHTS_FIT_PIXELS = 4000
 
 
 def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
@@ -78,10 +88,122 @@ def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
     return float(np.median(residuals)) if residuals else float("nan")
 
 
+def lights_fit(scene: np.ndarray, lights: Lights, mask: np.ndarray | None = None,
+               seed: int = 0) -> float:
+    """Median relative RMS residual of Lambertian fits of scene pixels to known lights.
+
+    Each of up to LIGHTS_FIT_PIXELS pixels (inside ``mask``) is fitted as
+    I_j = L_j . b (the bands' mean over each light's mean intensity; b the
+    albedo times the normal) by least squares on the lights that reach it
+    (FIT_ROUNDS rounds, as :func:`sphere_fit`).
+
+    Parameters
+    ----------
+    scene : (m, H, W, c) ndarray
+        Linear scene images, one per light.
+    lights : Lights
+    mask : (H, W) ndarray of bool, optional
+    seed : int, optional
+        Of the pixel sample.
+
+    Returns
+    -------
+    float
+        NaN when no pixel has 4 lit measurements.
+    """
+    _m, h, w, _c = scene.shape
+    inside = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    ys, xs = np.nonzero(inside)
+    if len(ys) > LIGHTS_FIT_PIXELS:
+        pick = np.random.default_rng(seed).choice(len(ys), LIGHTS_FIT_PIXELS, replace=False)
+        ys, xs = ys[pick], xs[pick]
+    strength = lights.intensities.mean(axis=1)  # (m,)
+    values = np.asarray(scene[:, ys, xs], np.float64).mean(axis=-1).T / strength  # (P, m)
+    directions = lights.directions  # (m, 3)
+    finite = np.isfinite(values)
+    values = np.where(finite, values, 0.0)
+    lit = finite & (values > LIT_FRACTION * values.max(axis=1, keepdims=True))
+    for _ in range(FIT_ROUNDS):
+        weight = lit.astype(np.float64)
+        normal = np.einsum("pj,ja,jb->pab", weight, directions, directions)
+        normal += 1e-12 * np.eye(3)
+        b = np.linalg.solve(normal, np.einsum("pj,ja,pj->pa", weight, directions,
+                                              values)[..., None])[..., 0]
+        shade = b @ directions.T  # (P, m)
+        lit = finite & (shade > LIT_FRACTION * np.linalg.norm(b, axis=1, keepdims=True))
+    enough = lit.sum(axis=1) >= 4
+    if not enough.any():
+        return float("nan")
+    r2 = np.where(lit, (values - shade) ** 2, 0.0).sum(axis=1)
+    i2 = np.where(lit, values ** 2, 0.0).sum(axis=1)
+    return float(np.median(np.sqrt(r2[enough] / np.maximum(i2[enough], 1e-30))))
+
+
+def linear_codes(values: np.ndarray, top_code: int) -> np.ndarray:
+    """What integer files decoded as sRGB hold read as linear: their codes over
+    ``top_code``, recovered exactly (colour-science's sRGB encoding, rounded to
+    the codes) and scaled as OpenImageIO reads them (times the float32 of
+    1 / top_code), so that the values are those of a linear read bit for bit."""
+    import colour
+
+    codes = colour.cctf_encoding(np.clip(np.asarray(values, np.float64), 0, 1),
+                                 function="sRGB")
+    return np.rint(codes * top_code).astype(np.float32) * np.float32(1.0 / top_code)
+
+
+def _encoding_verdict(fit, stack, fitted: float, encoding: str, top_code: int | None,
+                      first_file: Path, what: str) -> dict:
+    """The other decoding's fit, and whether to read the files the other way."""
+    record = dict(other_encoding_residual=None, decoded_as=None)
+    if top_code is None:
+        return record
+    from .io import srgb_decode
+
+    read_as_srgb = encoding in ("auto", "srgb")
+    other = linear_codes(stack, top_code) if read_as_srgb else \
+        srgb_decode(np.clip(stack, 0, 1))
+    other_fit = fit(other)
+    record["other_encoding_residual"] = other_fit
+    if not other_fit < ENCODING_RATIO * fitted:
+        return record
+    this, that = ("sRGB", "linear") if read_as_srgb else ("linear", "sRGB")
+    told = (f"{first_file}: {what} fits far better read as {that} (relative residual "
+            f"{other_fit:.3f}) than as {this} ({fitted:.3f})")
+    if encoding == "auto":
+        record["decoded_as"] = "linear"
+        warnings.warn(f"{told}: the files are read as linear (--encoding auto); pass "
+                      "--encoding srgb to read them as sRGB anyway", EncodingWarning,
+                      stacklevel=4)
+    else:
+        flag = that.lower()
+        warnings.warn(f"{told}: the files are probably {flag}; pass --encoding {flag}",
+                      EncodingWarning, stacklevel=4)
+    return record
+
+
+def check_lights(scene: np.ndarray, lights: Lights, mask, first_file: Path, encoding: str,
+                 top_code: int | None) -> dict:
+    """Fit the scene to its lights (:func:`lights_fit`) as decoded and the other
+    way; warn, or under "auto" choose linear, as :func:`check_gauge` does.
+
+    Returns what report.json records: ``lights_fit_residual``,
+    ``other_encoding_residual`` and ``decoded_as`` ("linear" when the files are
+    to be read so, else None).
+    """
+    def fit(stack):
+        return lights_fit(stack, lights, mask)
+
+    fitted = fit(scene)
+    return dict(lights_fit_residual=fitted,
+                **_encoding_verdict(fit, scene, fitted, encoding, top_code, first_file,
+                                    "the scene's shading under the lights"))
+
+
 def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str,
-                integer_files: bool) -> dict:
-    """Warn when the gauge images do not look like a lit sphere, or fit much better
-    decoded the other way; return what report.json records.
+                top_code: int | None) -> dict:
+    """Warn when the gauge images do not look like a lit sphere; compare the other
+    decoding of integer files, and under "auto" choose linear when it fits far
+    better. Returns what report.json records.
 
     Parameters
     ----------
@@ -92,32 +214,30 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
         The first gauge file, for messages.
     encoding : {"auto", "linear", "srgb"}
         How the files were decoded ("auto": sRGB for integer files).
-    integer_files : bool
-        The files store integers (the encoding question arises).
-    """
-    fit = sphere_fit(stack, gauge)
-    record = dict(sphere_fit_residual=fit, other_encoding_residual=None)
-    if integer_files:
-        from .io import srgb_decode, srgb_encode
+    top_code : int or None
+        The files' largest code (255 for 8-bit); None for floating-point files
+        (no encoding question).
 
-        read_as_srgb = encoding in ("auto", "srgb")
-        other = srgb_encode(stack) if read_as_srgb else srgb_decode(np.clip(stack, 0, 1))
-        other_fit = sphere_fit(other, gauge)
-        record["other_encoding_residual"] = other_fit
-        if other_fit < ENCODING_RATIO * fit:
-            flag = "linear" if read_as_srgb else "srgb"
-            warnings.warn(
-                f"{first_file}: the gauge's shading fits a lit sphere far better read as "
-                f"{'linear' if read_as_srgb else 'sRGB'} (relative residual "
-                f"{other_fit:.3f}) than as "
-                f"{'sRGB' if read_as_srgb else 'linear'} ({fit:.3f}): the files are "
-                f"probably {flag}; pass --encoding {flag}", GaugeWarning, stacklevel=3)
-            return record
-    if fit > POOR_FIT:
+    Returns
+    -------
+    dict
+        ``sphere_fit_residual``, ``other_encoding_residual`` and
+        ``decoded_as`` ("linear" when the files are to be read so, else None).
+    """
+    def fit(images):
+        return sphere_fit(images, gauge)
+
+    fitted = fit(stack)
+    record = dict(sphere_fit_residual=fitted,
+                  **_encoding_verdict(fit, stack, fitted, encoding, top_code, first_file,
+                                      "the gauge's shading of a lit sphere"))
+    other = record["other_encoding_residual"]
+    best = fitted if other is None else min(fitted, other)
+    if best > POOR_FIT:
         warnings.warn(
             f"{first_file}: the gauge images do not look like a matte sphere lit from one "
             f"direction at the given place (relative residual of a Lambertian fit "
-            f"{fit:.2f}; matte gauges leave about 0.1 or less): check that scene and gauge are not "
-            "swapped, --sphere, and that the gauge is not a mirror ball", GaugeWarning,
-            stacklevel=3)
+            f"{best:.2f}; matte gauges leave about 0.1 or less): check that scene and gauge "
+            "are not swapped, --sphere, and that the gauge is not a mirror ball",
+            GaugeWarning, stacklevel=3)
     return record

@@ -28,11 +28,11 @@ from typing import Literal
 import numpy as np
 
 from . import __version__
-from .calibrate import calibrate_lights
+from .calibrate import calibrate_lights, sphere_from_mask
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
-from .gauge_check import check_gauge
+from .gauge_check import check_gauge, check_lights, linear_codes
 from .hygiene import check_contents, check_names
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -41,10 +41,10 @@ from .io import (
     check_stack_files,
     expand_paths,
     input_levels,
-    pixel_type,
     read_image,
     read_mask,
     read_stack,
+    top_code,
 )
 from .lights import LIGHT_FORMATS, read_lights, write_lights
 from .memory import TilePlan, plan_tiles, release_freed_memory
@@ -145,8 +145,8 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
                   gauge=None if inputs.lights is not None else
                   StackModel.of_file(stacks.gauge_infos[0], options.encoding))
-    gauge, gauge_stack, run, virtual, checked = _make_gauge(inputs, stacks, scene, run, mask,
-                                                            progress)
+    gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
+                                                                   mask, progress)
     clock.start("reconstruct")
     if plan.rows is not None:
         with dask_client(scheduler) as client:
@@ -160,7 +160,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     del scene  # the stack is not needed past here: free it for integration and writing
     _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
-    report["gauge_check"] = checked
+    report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
     report["run_seconds"] = clock  # taken when report.json is written, last
     clock.start("writing")
     result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)
@@ -258,22 +258,46 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
 def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mask,
                 progress: bool):
     """(gauge, its stack, the settings with it, the virtual gauge's finish and fits or
-    None, the photographed gauge's check or None): photographed, or rendered under
-    the light file."""
+    None, the images' check, the scene): photographed, or rendered under the light
+    file. The check may find that integer files fit far better read as linear;
+    under --encoding auto the scene and gauge are then read so (the settings and
+    the scene returned are those)."""
+    encoding = run.options.encoding
     if stacks.light_set is not None:
+        checked = None
+        if isinstance(scene, np.ndarray):  # (a tiled run's scene stays in its files)
+            checked = check_lights(scene, stacks.light_set, mask, stacks.scene_paths[0],
+                                   encoding, top_code(stacks.scene_infos[0]))
+            if checked["decoded_as"]:
+                scene, run = _read_as_linear(scene, stacks, run)
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress)
-        return gauge, gauge.stack, run, (brdf, fits), None
-    gauge_stack, _ = read_stack(stacks.gauge_paths, run.options.encoding, name="gauge",
-                                progress=progress)
+        return gauge, gauge.stack, run, (brdf, fits), checked, scene
+    gauge_stack, _ = read_stack(stacks.gauge_paths, encoding, name="gauge", progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")
     sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
                               camera=inputs.camera)
-    checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], run.options.encoding,
-                          pixel_type(stacks.gauge_infos[0]) == "int")
-    return gauge, gauge_stack, run, None, checked
+    gauge_top = top_code(stacks.gauge_infos[0])
+    checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding, gauge_top)
+    if checked["decoded_as"]:
+        gauge_stack = linear_codes(gauge_stack, gauge_top)
+        scene, run = _read_as_linear(scene, stacks, run)
+    return gauge, gauge_stack, run, None, checked, scene
+
+
+def _read_as_linear(scene, stacks: _Stacks, run: Resolved):
+    """The scene and the settings of a run whose integer files are read as linear."""
+    options = run.requested.replace(encoding="linear")  # levels still "auto" if asked
+    scene_top = top_code(stacks.scene_infos[0])
+    if isinstance(scene, StackFiles):
+        scene = StackFiles(scene.paths, scene.shape, "linear")
+    elif scene_top is not None:
+        scene = linear_codes(scene, scene_top)
+    return scene, resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], "linear"),
+                          gauge=None if stacks.light_set is not None else
+                          StackModel.of_file(stacks.gauge_infos[0], "linear"))
 
 
 def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan,
@@ -454,20 +478,25 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
 
 
 def calibrate_lights_files(image_patterns: str | Sequence[str],
-                           sphere: Literal["auto"] | tuple[float, float, float], out, *,
-                           encoding="auto", overwrite: bool = False):
+                           sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
+                           sphere_mask=None, encoding="auto", overwrite: bool = False):
     """Light directions from mirror-sphere images, written as a light file.
 
     Parameters
     ----------
     image_patterns : str or sequence of str
         The mirror-sphere images, one per light, in capture order.
-    sphere : "auto" or (cx, cy, r)
+    sphere : "auto", (cx, cy, r) or None
         The sphere's silhouette in pixels, or found with :func:`colorps.find_sphere`
-        on the images (it needs the sphere's disk brighter than the background).
+        on the images (it needs the sphere's disk brighter than the background);
+        None with ``sphere_mask``.
     out : str or Path
         ``.txt`` (one "x y z" per line), ``.lp`` (count, then "file x y z") or
         ``.json``.
+    sphere_mask : str or Path, optional
+        A mask image of the sphere (non-zero on it), for a dark sphere that
+        ``"auto"`` cannot find: the circle is the largest region's centroid and
+        the radius of its area (:func:`colorps.calibrate.sphere_from_mask`).
 
     Returns
     -------
@@ -482,8 +511,17 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
         raise OutputError(f"{out.parent}: output folder does not exist")
     paths = expand_paths(image_patterns, name="mirror sphere")
     info = check_stack_files(paths, name="mirror sphere")[0]
+    if (sphere is None) == (sphere_mask is None):
+        raise InputError("give the mirror sphere's circle (--sphere) or its mask "
+                         "(--sphere-mask), one of them")
     stack, _ = read_stack(paths, encoding, name="mirror sphere")
-    found_sphere = find_sphere(stack) if sphere == "auto" else tuple(sphere)
+    if sphere_mask is not None:
+        try:
+            found_sphere = sphere_from_mask(read_mask(sphere_mask, stack.shape[1:3]))
+        except InputError as exc:
+            raise InputError(f"{sphere_mask}: {exc}") from None
+    else:
+        found_sphere = find_sphere(stack) if sphere == "auto" else tuple(sphere)
     clip_level, _ = input_levels(info, encoding)
     lights, found = calibrate_lights(stack, found_sphere, clip_level=clip_level,
                                      names=[p.name for p in paths])

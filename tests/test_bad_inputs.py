@@ -484,7 +484,10 @@ def test_a_mask_in_the_stack_is_named_with_its_position(capture, tmp_path, capsy
 def test_swapped_stacks_and_the_wrong_encoding_are_warned_about(capture, tmp_path, capsys):
     """The gauge's shading is fitted as a lit sphere at its place: scene and gauge
     swapped fit badly; 8-bit files decoded the wrong way fit far better the other
-    way, and the warning says which --encoding to pass. report.json records both fits."""
+    way: under --encoding auto they are then read as linear (and the warning says
+    so), with an explicit --encoding the warning says which to pass. report.json
+    records both fits and the choice."""
+    from colorps import angular_error
     from colorps.io import srgb_encode
 
     folder, info = capture
@@ -501,10 +504,12 @@ def test_swapped_stacks_and_the_wrong_encoding_are_warned_about(capture, tmp_pat
             write_image(tmp_path / f"lin_{kind}_{k}.png", image, dtype="uint8")
             write_image(tmp_path / f"srgb_{kind}_{k}.png", srgb_encode(image), dtype="uint8")
     sphere = f"{g['cx']},{g['cy']},{g['r']}"
-    cases = (("lin", "auto", "pass --encoding linear"), ("srgb", "linear",
-                                                         "pass --encoding srgb"),
-             ("srgb", "auto", None))
-    for prefix, encoding, said in cases:
+    truth = read_image(folder / "truth_normal.exr")[0]
+    cases = (("lin", "auto", "read as linear (--encoding auto)", "linear"),
+             ("srgb", "linear", "pass --encoding srgb", None), ("srgb", "auto", None, None),
+             ("lin", "linear", None, None))
+    errors = {}
+    for prefix, encoding, said, decoded_as in cases:
         out = tmp_path / f"{prefix}-{encoding}"
         assert main(["reconstruct", "--scene", str(tmp_path / f"{prefix}_scene_*.png"),
                      "--gauge", str(tmp_path / f"{prefix}_gauge_*.png"), "--sphere", sphere,
@@ -512,5 +517,47 @@ def test_swapped_stacks_and_the_wrong_encoding_are_warned_about(capture, tmp_pat
                      "--max-residual", "none"]) == 0
         err = capsys.readouterr().err
         assert (said in err) if said else ("--encoding" not in err), err
-        check = json.loads((out / "report.json").read_text())["gauge_check"]
+        report = json.loads((out / "report.json").read_text())
+        check = report["gauge_check"]
         assert check["sphere_fit_residual"] > 0 and check["other_encoding_residual"] > 0
+        assert check["decoded_as"] == decoded_as
+        assert report["options"]["encoding"] == (decoded_as or encoding)
+        normals = read_image(out / "normal.exr")[0]
+        solved = np.isfinite(normals).all(axis=-1)
+        errors[prefix, encoding] = float(np.mean(angular_error(normals[solved],
+                                                               truth[solved])))
+    # Read as linear by itself, the linear set is as good as when told so.
+    assert errors["lin", "auto"] == pytest.approx(errors["lin", "linear"], abs=1e-6)
+    assert errors["lin", "auto"] < 3.0
+
+
+def test_light_file_runs_choose_the_encoding_the_lights_explain(tmp_path, capsys):
+    """With calibrated lights, 8-bit linear files are found so from the scene's fit
+    to its lights: read as linear under auto (as good as when told), warned about
+    when --encoding srgb is forced."""
+    from colorps import Lights, angular_error, write_lights
+
+    info = synth.write_synthetic(tmp_path / "cap", size=64, images=8, theta=40)
+    lights = tmp_path / "lights.txt"
+    write_lights(Lights(np.array(info["light_directions"])[:, 0],
+                        np.array(info["light_colours"])[:, 0]), lights)
+    for k in range(8):
+        image = read_image(tmp_path / "cap" / f"scene_{k:02d}.exr")[0]
+        write_image(tmp_path / f"lin_{k}.png", image, dtype="uint8")
+    truth = read_image(tmp_path / "cap" / "truth_normal.exr")[0]
+    errors = {}
+    for encoding, said in (("auto", "read as linear (--encoding auto)"),
+                           ("linear", None), ("srgb", "pass --encoding linear")):
+        out = tmp_path / encoding
+        assert main(["reconstruct", "--scene", str(tmp_path / "lin_*.png"), "--lights",
+                     str(lights), "--mask", str(tmp_path / "cap" / "mask.png"), "--encoding",
+                     encoding, "--out", str(out), "--quiet", "--no-height"]) == 0
+        err = capsys.readouterr().err
+        assert (said in err) if said else ("--encoding" not in err), err
+        check = json.loads((out / "report.json").read_text())["lights_check"]
+        assert check["decoded_as"] == ("linear" if encoding == "auto" else None)
+        normals = read_image(out / "normal.exr")[0]
+        solved = np.isfinite(normals).all(axis=-1)
+        errors[encoding] = float(np.mean(angular_error(normals[solved], truth[solved])))
+    assert errors["auto"] == pytest.approx(errors["linear"], abs=1e-6)
+    assert errors["srgb"] > errors["linear"] + 2.0

@@ -79,3 +79,61 @@ def test_cli_refuses_without_writing(tmp_path):
     assert done.returncode != 0
     assert "chrome_1.exr" in done.stderr and "no highlight" in done.stderr
     assert not out.exists()
+
+
+def _with_window(image, at=(60, 150), half=7, level=3.0):
+    """A bright square reflection (a window) on the sphere, brighter than the light."""
+    out = image.copy()
+    y, x = at
+    out[y - half:y + half, x - half:x + half] = level
+    return out
+
+
+def test_a_brighter_window_beside_the_highlight_is_not_taken_for_the_light():
+    from colorps.calibrate import AmbiguousHighlightWarning
+
+    lights = synth.ring_lights(6, 45)
+    stack = mirror_ball(lights, noise=0.002, seed=2)
+    stack[2] = _with_window(stack[2])
+    with pytest.warns(AmbiguousHighlightWarning, match=r"image 2: 2 bright blobs"):
+        found_lights, found = calibrate_lights(stack, SPHERE)
+    error = degrees(found_lights.directions, lights.directions[:, 0])
+    assert error.max() < 0.6  # the window (brighter, larger) was not taken
+    assert found[2].rival > 1.0  # and the light's blob is not the brightest
+    assert all(f.rival == 0.0 for k, f in enumerate(found) if k != 2)
+
+
+def test_only_ambiguous_images_are_refused():
+    lights = synth.ring_lights(3, 45)
+    stack = np.stack([_with_window(image) for image in mirror_ball(lights, noise=0.002)])
+    with pytest.raises(InputError, match="bright blobs on the mirror sphere"):
+        calibrate_lights(stack, SPHERE)
+
+
+def test_a_dark_sphere_is_found_from_its_mask(tmp_path):
+    """A chrome ball darker than its background: --sphere-mask gives its circle."""
+    from colorps.calibrate import sphere_from_mask
+
+    y, x = np.mgrid[0:240, 0:241]
+    disk = np.hypot(x - SPHERE[0], y - SPHERE[1]) <= SPHERE[2]
+    cx, cy, r = sphere_from_mask(disk)
+    assert abs(cx - SPHERE[0]) < 0.1 and abs(cy - SPHERE[1]) < 0.1 and abs(r - SPHERE[2]) < 0.5
+    lights = synth.ring_lights(4, 40)
+    for k, image in enumerate(mirror_ball(lights, noise=0.002)):
+        dark = np.where(disk[..., None], 0.05 * image / image.max() + 0.02, 0.4)
+        dark[disk] += np.where(image[disk] > 0.5 * image.max(), 0.9, 0.0)
+        write_image(tmp_path / f"dark_{k}.exr", dark)
+    write_image(tmp_path / "ball_mask.png", disk.astype(np.float32), dtype="uint8")
+    out = tmp_path / "lights.txt"
+    done = subprocess.run([sys.executable, "-m", "colorps.cli", "calibrate-lights",
+                           str(tmp_path / "dark_*.exr"), "--sphere-mask",
+                           str(tmp_path / "ball_mask.png"), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    error = degrees(read_lights(out).directions, lights.directions[:, 0])
+    assert error.max() < 1.0
+    neither = subprocess.run([sys.executable, "-m", "colorps.cli", "calibrate-lights",
+                              str(tmp_path / "dark_*.exr"), "--out",
+                              str(tmp_path / "other.txt")], capture_output=True, text=True)
+    assert neither.returncode == 1 and "--sphere-mask" in neither.stderr
+    assert "Traceback" not in neither.stderr and not (tmp_path / "other.txt").exists()
