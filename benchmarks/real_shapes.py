@@ -7,7 +7,11 @@ grooves up to 0.35 radii deep) under a :func:`colorps.shapes.dome_lights` dome
 0.003, with a sphere gauge of radius 0.3 x size rendered under the same lights.
 Variants: 32 and 96 lights; Oren-Nayar (rough) scene and gauge; a scene of a
 slightly different finish than the gauge (Oren-Nayar sigma 0.3 scene, Lambertian
-gauge); 8-bit sRGB files (quantised as a camera would store them).
+gauge); 8-bit sRGB files (quantised as a camera would store them); a one-bounce
+interreflection in the folds (``synth.render(interreflection=0.5)``); a gauge seen
+through a short lens off the optical axis (pinhole, focal length 2.5 gauge
+diameters, the sphere 1.2 diameters off the axis), read with the camera (and,
+in the next row, without it).
 
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
@@ -38,10 +42,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from colorps import Gauge, Lights, Options, angular_error, reconstruct, synth  # noqa: E402
-from colorps.shapes import dome_lights, folds_surface  # noqa: E402
-from colorps.resolve import StackModel, resolve  # noqa: E402
-from colorps.virtual import virtual_gauge  # noqa: E402
+from colorps import Gauge, Lights, Options, angular_error, reconstruct, synth
+from colorps.camera import Camera
+from colorps.resolve import StackModel, resolve
+from colorps.shapes import dome_lights, folds_surface
+from colorps.virtual import virtual_gauge
 
 NOISE = 0.003
 
@@ -53,20 +58,27 @@ def quantise_srgb(stack: np.ndarray) -> np.ndarray:
     return srgb_decode(np.round(srgb_encode(stack) * 255) / 255).astype(np.float32)
 
 
-def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: bool):
+def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: bool, *,
+             interreflection: float = 0.0, perspective: bool = False):
     lights = dome_lights(m)
     scene = folds_surface(size)
     stack = synth.render(scene, lights, brdf=scene_brdf, roughness=0.3, noise=NOISE, seed=1,
-                         cast_shadows=True)
+                         cast_shadows=True, interreflection=interreflection)
     radius = 0.3 * size
     gauge_size = int(2 * radius + 10)
-    ball = synth.sphere_surface(gauge_size, radius)
+    centre = (gauge_size - 1) / 2
+    camera = None
+    if perspective:  # the optical axis 1.2 diameters to the left of the sphere
+        focal = 2.5 * 2 * radius
+        camera = Camera(focal, focal, centre - 2.4 * radius, centre)
+    gauge = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius, camera=camera)
+    ball = synth.SyntheticSurface(normals=np.where(gauge.mask[..., None], gauge.normals, 0.0),
+                                  mask=gauge.mask, albedo=np.ones((gauge_size, gauge_size, 3)),
+                                  height=np.zeros((gauge_size, gauge_size)))
     gauge_stack = synth.render(ball, lights, brdf=gauge_brdf, roughness=0.3, noise=NOISE,
                                seed=2)
     if eight_bit:
         stack, gauge_stack = quantise_srgb(stack), quantise_srgb(gauge_stack)
-    centre = (gauge_size - 1) / 2
-    gauge = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius)
     return scene, lights, stack, gauge_stack, gauge
 
 
@@ -86,7 +98,7 @@ def facets(normals, solved) -> float:
 
 def least_squares(stack, directions, mask) -> np.ndarray:
     g = np.linalg.lstsq(directions, stack.mean(axis=3)[:, mask], rcond=None)[0].T
-    normals = np.zeros(mask.shape + (3,))
+    normals = np.zeros((*mask.shape, 3))
     normals[mask] = g / np.linalg.norm(g, axis=1, keepdims=True)
     return normals
 
@@ -110,21 +122,30 @@ def main(argv=None) -> None:
     print("mean (refused = 90 deg) / median (deg) / solved\n")
     print("| set | gauge | virtual | least squares | gauge-mode facets | gauge-mode seconds |")
     print("|---|---|---|---|---|---|")
-    sets = [("32 lights, Lambertian", 32, "lambert", "lambert", False),
-            ("96 lights, Lambertian", 96, "lambert", "lambert", False),
+    sets = [("32 lights, Lambertian", 32, "lambert", "lambert", False, {}),
+            ("96 lights, Lambertian", 96, "lambert", "lambert", False, {}),
             ("32 lights, rough (Oren-Nayar) scene and gauge", 32, "oren-nayar", "oren-nayar",
-             False),
-            ("32 lights, rough scene, Lambertian gauge", 32, "oren-nayar", "lambert", False),
-            ("32 lights, 8-bit sRGB", 32, "lambert", "lambert", True),
+             False, {}),
+            ("32 lights, rough scene, Lambertian gauge", 32, "oren-nayar", "lambert", False,
+             {}),
+            ("32 lights, 8-bit sRGB", 32, "lambert", "lambert", True, {}),
             ("32 lights, 8-bit sRGB, rough scene, Lambertian gauge", 32, "oren-nayar",
-             "lambert", True)]
-    for name, m, scene_brdf, gauge_brdf, eight_bit in sets:
+             "lambert", True, {}),
+            ("32 lights, interreflection 0.5", 32, "lambert", "lambert", False,
+             {"interreflection": 0.5}),
+            ("32 lights, perspective gauge, with --camera", 32, "lambert", "lambert", False,
+             {"perspective": True})]
+    for name, m, scene_brdf, gauge_brdf, eight_bit, extra in sets:
         scene, lights, stack, gauge_stack, gauge = make_set(args.size, m, scene_brdf,
-                                                            gauge_brdf, eight_bit)
+                                                            gauge_brdf, eight_bit, **extra)
         mask = scene.mask
         t0 = time.perf_counter()
         result = reconstruct(stack, gauge_stack, gauge, mask=mask)
         seconds = time.perf_counter() - t0
+        plain = None
+        if extra.get("perspective"):  # the same images, the gauge read orthographically
+            flat = Gauge.from_sphere(gauge.mask.shape, *gauge.sphere)
+            plain = reconstruct(stack, gauge_stack, flat, mask=mask)
         calibrated = Lights(lights.directions[:, 0, :], lights.colours[:, 0, :])
         virtual = run_virtual(stack, calibrated, mask)
         ls = least_squares(stack, lights.directions[:, 0, :], mask)
@@ -132,6 +153,10 @@ def main(argv=None) -> None:
                    scores(virtual.normals, virtual.solved, scene.normals, mask),
                    scores(ls, mask, scene.normals, mask)], seconds,
             facets(result.normals, result.solved & mask))
+        if plain is not None:
+            mean, median, solved = scores(plain.normals, plain.solved, scene.normals, mask)
+            print(f"| (the same gauge read without the camera) | {mean:.2f} / {median:.2f} / "
+                  f"{solved:.2%} | | | | |", flush=True)
     if args.diligent is not None:
         ball(args.diligent)
 

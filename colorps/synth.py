@@ -41,6 +41,7 @@ __all__ = [
     "render_mirror_sphere",
     "ring_lights",
     "shadow_maps",
+    "sky_visibility",
     "smiley_surface",
     "sphere_surface",
     "write_synthetic",
@@ -48,6 +49,11 @@ __all__ = [
 
 #: Names of the reflectance models :func:`render` knows.
 BRDFS = ("lambert", "oren-nayar")
+#: One-bounce interreflection (:func:`render`): hemisphere directions sampled
+#: for a pixel's sky visibility, and how far bounced light reaches (Gaussian
+#: sigma as a fraction of the image's larger side).
+SKY_SAMPLES = 24
+BOUNCE_REACH = 0.04
 
 
 @dataclass(frozen=True)
@@ -154,7 +160,8 @@ def _shade(normals: np.ndarray, light: np.ndarray, brdf: str, roughness: float) 
 def render(surface: SyntheticSurface, lighting: Lighting, *,
            brdf: Literal["lambert", "oren-nayar"] = "lambert", roughness: float = 0.5,
            noise: float = 0.0, seed: int | None = 0, cast_shadows: bool = False,
-           gloss: float = 0.0, shininess: float = 60.0) -> np.ndarray:
+           gloss: float = 0.0, shininess: float = 60.0,
+           interreflection: float = 0.0) -> np.ndarray:
     """Render an image stack of a surface.
 
     Parameters
@@ -177,6 +184,15 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
         A white Blinn-Phong highlight ``gloss (n . h)^shininess`` (h halfway
         between light and view) added to the diffuse shading: a finish the
         matte gauge does not share (:func:`highlight_maps`).
+    interreflection : float, optional
+        Strength of a one-bounce interreflection (0: none; 1: the surface's own
+        albedo): each pixel also receives the light its surroundings reflect,
+        ``interreflection * albedo * (1 - V) * blur(direct)``, V the pixel's
+        sky visibility (:func:`sky_visibility`: the cosine-weighted part of its
+        hemisphere the relief does not hide) and ``blur(direct)`` the direct
+        radiance around it (Gaussian of BOUNCE_REACH times the image's larger
+        side, over the mask). A simple model of light bounced inside folds:
+        strongest in deep, narrow concavities, none on open, convex parts.
 
     Returns
     -------
@@ -205,11 +221,50 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
                 shade = np.where(blocked[k, index][surface.mask][:, None], 0.0, shade)
             value += shade * colour[None, :]
         stack[k][surface.mask] = value
+    if interreflection > 0:
+        stack += interreflection * _bounced(surface, stack)
     if noise > 0:
         rng = np.random.default_rng(seed)
         stack += rng.normal(0.0, noise, size=stack.shape)
         np.maximum(stack, 0.0, out=stack)
     return stack.astype(np.float32)
+
+
+def sky_visibility(surface: SyntheticSurface, samples: int = SKY_SAMPLES) -> np.ndarray:
+    """(H, W) fraction of the sky above each pixel that the relief leaves open:
+    of ``samples`` directions spread evenly over the upper hemisphere (a
+    Fibonacci spiral), weighted by their cosine to the pixel's normal, the part
+    not blocked by the relief (:func:`shadow_maps`). 1 on open flat or convex
+    parts, less in grooves and folds (where the pixel sees the surface itself);
+    0 outside the mask."""
+    k = np.arange(samples) + 0.5
+    z = 1.0 - k / samples  # evenly in z: even in solid angle
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    rho = np.sqrt(1.0 - z * z)
+    directions = np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+    sky = Lighting(directions[None], np.ones((1, samples, 1)))
+    blocked = shadow_maps(surface, sky)[0]  # (samples, H, W)
+    cosine = np.maximum(np.einsum("hwc,sc->shw", surface.normals, directions), 0.0)
+    total = cosine.sum(axis=0)
+    open_sky = np.where(blocked, 0.0, cosine).sum(axis=0) / np.maximum(total, 1e-12)
+    return np.where(surface.mask, np.clip(open_sky, 0.0, 1.0), 0.0)
+
+
+def _bounced(surface: SyntheticSurface, direct: np.ndarray) -> np.ndarray:
+    """The one-bounce term of :func:`render` (strength 1), (m, H, W, c)."""
+    from scipy.ndimage import gaussian_filter
+
+    hidden = 1.0 - sky_visibility(surface)
+    sigma = BOUNCE_REACH * max(surface.mask.shape)
+    inside = surface.mask.astype(np.float64)
+    weight = gaussian_filter(inside, sigma)
+    out = np.zeros_like(direct)
+    for k in range(direct.shape[0]):
+        for band in range(direct.shape[3]):
+            around = gaussian_filter(direct[k, ..., band], sigma) / np.maximum(weight, 1e-12)
+            out[k, ..., band] = np.where(surface.mask, surface.albedo[..., band] * hidden *
+                                         around, 0.0)
+    return out
 
 
 def _specular(normals: np.ndarray, light: np.ndarray, gloss: float,

@@ -133,3 +133,29 @@ def test_shadowed_pixels_are_refused_without_light_subsets(folds):
     scene, lights, stack, gauge_stack, gauge, shadows = folds
     plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
     assert plain.solved[scene.mask].mean() < 0.98
+
+
+def test_one_bounce_interreflection_lights_folds_not_open_surfaces():
+    """sky_visibility: 1 on an open flat surface, lower in a deep groove; the
+    bounced light of render(interreflection=...) follows it."""
+    from colorps.shapes import dome_lights, folds_surface
+
+    flat = synth.SyntheticSurface(normals=np.tile([0.0, 0.0, 1.0], (40, 40, 1)),
+                                  mask=np.ones((40, 40), bool),
+                                  albedo=np.full((40, 40, 3), 0.5), height=np.zeros((40, 40)))
+    open_sky = synth.sky_visibility(flat)
+    assert np.allclose(open_sky, 1.0, atol=0.03)
+    lights = dome_lights(8)
+    np.testing.assert_allclose(synth.render(flat, lights, interreflection=1.0),
+                               synth.render(flat, lights), atol=0.02 * 0.5)
+    folds = folds_surface(96)
+    sky = synth.sky_visibility(folds)
+    inside = sky[folds.mask]
+    assert inside.min() < 0.8 and np.median(inside) > 0.9  # grooves hidden, most open
+    plain = synth.render(folds, lights, cast_shadows=True)
+    bounced = synth.render(folds, lights, cast_shadows=True, interreflection=0.5)
+    extra = (bounced - plain).mean(axis=(0, 3))
+    hidden = folds.mask & (sky < 0.8)
+    exposed = folds.mask & (sky > 0.97)
+    assert extra[hidden].mean() > 5 * max(extra[exposed].mean(), 1e-4)
+    assert (bounced >= plain - 1e-6).all()

@@ -70,6 +70,9 @@ def test_level_data_decode_to_the_maps(results):
     import tempfile
 
     index, levels = _index(results), _levels(results)
+    report = json.loads((results / "report.json").read_text())["statistics"]
+    absolute = report["residual_median"] * report["model_scale"]
+    assert f"median residual {absolute:.2f} noise units" in index["title"]  # the fit as is
     normals, _ = read_image(results / "normal.exr")
     quality, _ = read_image(results / "quality.exr")
     assert len(levels) == len(index["levels"]) == 1
