@@ -9,9 +9,9 @@ Variants: 32 and 96 lights; Oren-Nayar (rough) scene and gauge; a scene of a
 slightly different finish than the gauge (Oren-Nayar sigma 0.3 scene, Lambertian
 gauge); 8-bit sRGB files (quantised as a camera would store them); a one-bounce
 interreflection in the folds (``synth.render(interreflection=0.5)``); a gauge seen
-through a short lens off the optical axis (pinhole, focal length 2.5 gauge
-diameters, the sphere 1.2 diameters off the axis), read with the camera (and,
-in the next row, without it).
+through a lens off the optical axis (pinhole, focal length 6 gauge diameters,
+the sphere 0.8 diameters off the axis: 7.6 degrees), read with the camera (and,
+in the next row, without it). ``--only TEXT`` runs the sets whose names hold it.
 
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
@@ -68,9 +68,9 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
     gauge_size = int(2 * radius + 10)
     centre = (gauge_size - 1) / 2
     camera = None
-    if perspective:  # the optical axis 1.2 diameters to the left of the sphere
-        focal = 2.5 * 2 * radius
-        camera = Camera(focal, focal, centre - 2.4 * radius, centre)
+    if perspective:  # the optical axis 0.8 diameters to the left of the sphere
+        focal = 6 * 2 * radius
+        camera = Camera(focal, focal, centre - 1.6 * radius, centre)
     gauge = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius, camera=camera)
     ball = synth.SyntheticSurface(normals=np.where(gauge.mask[..., None], gauge.normals, 0.0),
                                   mask=gauge.mask, albedo=np.ones((gauge_size, gauge_size, 3)),
@@ -118,6 +118,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=200)
     parser.add_argument("--diligent", type=Path)
+    parser.add_argument("--only", default="", metavar="TEXT")
     args = parser.parse_args(argv)
     print("mean (refused = 90 deg) / median (deg) / solved\n")
     print("| set | gauge | virtual | least squares | gauge-mode facets | gauge-mode seconds |")
@@ -136,6 +137,8 @@ def main(argv=None) -> None:
             ("32 lights, perspective gauge, with --camera", 32, "lambert", "lambert", False,
              {"perspective": True})]
     for name, m, scene_brdf, gauge_brdf, eight_bit, extra in sets:
+        if args.only not in name:
+            continue
         scene, lights, stack, gauge_stack, gauge = make_set(args.size, m, scene_brdf,
                                                             gauge_brdf, eight_bit, **extra)
         mask = scene.mask
