@@ -126,9 +126,10 @@ def find_highlight(image, sphere: tuple[float, float, float], *,
     >>> import numpy as np
     >>> from colorps import synth
     >>> from colorps.calibrate import find_highlight
+    >>> from colorps.shapes import render_mirror_sphere
     >>> ball = synth.sphere_surface(121, 50)
     >>> lights = synth.ring_lights(1, 40)
-    >>> image = synth.render_mirror_sphere(ball, lights)[0]
+    >>> image = render_mirror_sphere(ball, lights)[0]
     >>> found = find_highlight(image, (60, 60, 50))
     >>> bool(np.degrees(np.arccos(found.direction @ lights.directions[0, 0])) < 0.3)
     True

@@ -1,11 +1,12 @@
-"""Harder synthetic captures: deep concave folds and domes of many lights.
+"""Harder synthetic captures: deep concave folds, domes of many lights, a mirror ball.
 
 :mod:`colorps.synth` renders the paper's smiley scene, whose low relief casts
 few shadows. Real objects have folds that hide a pixel from many of a dome's
 lights at once; :func:`folds_surface` is such an object (a dome crossed by
 deep grooves), and :func:`dome_lights` a light dome of 32-96 lights like the
 rigs of museum and inspection imaging (and DiLiGenT's). Render them with
-:func:`colorps.synth.render` (``cast_shadows=True``).
+:func:`colorps.synth.render` (``cast_shadows=True``). :func:`render_mirror_sphere`
+renders the chrome ball ``colorps calibrate-lights`` reads.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 from .errors import InputError
 from .synth import Lighting, SyntheticSurface
 
-__all__ = ["dome_lights", "folds_surface"]
+__all__ = ["dome_lights", "folds_surface", "render_mirror_sphere"]
 
 
 def folds_surface(size: int = 200, *, depth: float = 0.35, period: float = 0.5,
@@ -85,3 +86,35 @@ def dome_lights(m: int, max_theta_deg: float = 60.0, *, bands: int = 3) -> Light
     sin_theta = np.sqrt(1.0 - cos_theta ** 2)
     directions = np.stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), cos_theta], 1)
     return Lighting(directions[:, None, :], np.ones((m, 1, bands)))
+
+
+def render_mirror_sphere(surface: SyntheticSurface, lighting: Lighting, *,
+                         spread_deg: float = 1.0, ambient: float = 0.03,
+                         peak: float = 1.0, noise: float = 0.0,
+                         seed: int | None = 0) -> np.ndarray:
+    """Images of a mirror (chrome) surface reflecting each image's lights.
+
+    Each distant light is a small round source: a pixel whose mirror direction
+    r = 2 (n . v) n - v makes the angle theta with it shows
+    ``peak * colour * exp(-theta^2 / (2 spread^2))``, on top of a dim uniform
+    environment ``ambient`` (so the sphere's disk is visible); 0 outside the mask.
+
+    Returns
+    -------
+    (m, H, W, c) ndarray of float32
+        Linear values (not clipped: clip them to mimic saturation).
+    """
+    n = surface.normals
+    reflected = 2.0 * n[..., 2:3] * n - np.array([0.0, 0.0, 1.0])
+    spread = np.radians(spread_deg)
+    rng = np.random.default_rng(seed)
+    images = np.zeros((lighting.images, *surface.mask.shape, lighting.bands))
+    for k in range(lighting.images):
+        images[k] += ambient
+        for direction, colour in zip(lighting.directions[k], lighting.colours[k]):
+            theta = np.arccos(np.clip(reflected @ direction, -1.0, 1.0))
+            images[k] += peak * np.exp(-theta ** 2 / (2 * spread ** 2))[..., None] * colour
+        if noise:
+            images[k] += rng.normal(0.0, noise, images[k].shape)
+        images[k][~surface.mask] = 0.0
+    return images.astype(np.float32)

@@ -38,7 +38,6 @@ __all__ = [
     "highlight_maps",
     "mixed_lights",
     "render",
-    "render_mirror_sphere",
     "ring_lights",
     "shadow_maps",
     "sky_visibility",
@@ -188,11 +187,9 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
         Strength of a one-bounce interreflection (0: none; 1: the surface's own
         albedo): each pixel also receives the light its surroundings reflect,
         ``interreflection * albedo * (1 - V) * blur(direct)``, V the pixel's
-        sky visibility (:func:`sky_visibility`: the cosine-weighted part of its
-        hemisphere the relief does not hide) and ``blur(direct)`` the direct
-        radiance around it (Gaussian of BOUNCE_REACH times the image's larger
-        side, over the mask). A simple model of light bounced inside folds:
-        strongest in deep, narrow concavities, none on open, convex parts.
+        :func:`sky_visibility` and ``blur(direct)`` the direct radiance around
+        it (Gaussian of BOUNCE_REACH times the image's larger side, over the
+        mask): light bounced inside folds, none on open, convex parts.
 
     Returns
     -------
@@ -274,38 +271,6 @@ def _specular(normals: np.ndarray, light: np.ndarray, gloss: float,
     half = half / np.linalg.norm(half)
     lit = normals @ light > 0
     return np.where(lit, gloss * np.clip(normals @ half, 0.0, 1.0) ** shininess, 0.0)
-
-
-def render_mirror_sphere(surface: SyntheticSurface, lighting: Lighting, *,
-                         spread_deg: float = 1.0, ambient: float = 0.03,
-                         peak: float = 1.0, noise: float = 0.0,
-                         seed: int | None = 0) -> np.ndarray:
-    """Images of a mirror (chrome) surface reflecting each image's lights.
-
-    Each distant light is a small round source: a pixel whose mirror direction
-    r = 2 (n . v) n - v makes the angle theta with it shows
-    ``peak * colour * exp(-theta^2 / (2 spread^2))``, on top of a dim uniform
-    environment ``ambient`` (so the sphere's disk is visible); 0 outside the mask.
-
-    Returns
-    -------
-    (m, H, W, c) ndarray of float32
-        Linear values (not clipped: clip them to mimic saturation).
-    """
-    n = surface.normals
-    reflected = 2.0 * n[..., 2:3] * n - np.array([0.0, 0.0, 1.0])
-    spread = np.radians(spread_deg)
-    rng = np.random.default_rng(seed)
-    images = np.zeros((lighting.images, *surface.mask.shape, lighting.bands))
-    for k in range(lighting.images):
-        images[k] += ambient
-        for direction, colour in zip(lighting.directions[k], lighting.colours[k]):
-            theta = np.arccos(np.clip(reflected @ direction, -1.0, 1.0))
-            images[k] += peak * np.exp(-theta ** 2 / (2 * spread ** 2))[..., None] * colour
-        if noise:
-            images[k] += rng.normal(0.0, noise, images[k].shape)
-        images[k][~surface.mask] = 0.0
-    return images.astype(np.float32)
 
 
 def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:

@@ -10,13 +10,14 @@ from colorps import read_lights, synth
 from colorps.calibrate import calibrate_lights, find_highlight
 from colorps.errors import InputError
 from colorps.io import write_image
+from colorps.shapes import render_mirror_sphere
 
 SPHERE = (120.0, 118.0, 100.0)
 
 
 def mirror_ball(lights, **render):
     ball = synth.sphere_surface((240, 241), SPHERE[2], centre=SPHERE[:2])
-    return synth.render_mirror_sphere(ball, lights, **render)
+    return render_mirror_sphere(ball, lights, **render)
 
 
 def degrees(a, b):
