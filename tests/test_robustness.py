@@ -350,7 +350,11 @@ def test_interrupted_run_leaves_no_partial_output(tmp_path):
     cmd, out = long_run_command(tmp_path)
     results = []
     for delay in (1.5, 3.0, 4.5):
-        proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+        # A shell's background job (as CI may run the tests) ignores SIGINT, and its
+        # children inherit that: give the run the default disposition a user's has.
+        proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT,
+                                                                 signal.SIG_DFL))
         time.sleep(delay)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
