@@ -70,8 +70,12 @@ def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
         sqrt(sum r^2 / sum I^2) over the lit pixels of each image (I the bands'
         mean, r = I - n . L), the median over the images.
     """
-    normals = gauge.normals[gauge.mask]  # (P, 3)
-    values = np.asarray(stack, dtype=np.float64)[:, gauge.mask].mean(axis=-1)  # (m, P)
+    return _sphere_fit_pixels(np.asarray(stack)[:, gauge.mask], gauge.normals[gauge.mask])
+
+
+def _sphere_fit_pixels(pixels: np.ndarray, normals: np.ndarray) -> float:
+    """:func:`sphere_fit` of the gauge's (m, P, c) pixels at their (P, 3) normals."""
+    values = np.asarray(pixels, dtype=np.float64).mean(axis=-1)  # (m, P)
     residuals = []
     for image in values:
         lit = np.isfinite(image) & (image > LIT_FRACTION * np.nanmax(image, initial=0.0))
@@ -111,14 +115,25 @@ def lights_fit(scene: np.ndarray, lights: Lights, mask: np.ndarray | None = None
     float
         NaN when no pixel has 4 lit measurements.
     """
+    return _lights_fit_pixels(_sample(scene, mask, seed), lights)
+
+
+def _sample(scene: np.ndarray, mask, seed: int = 0) -> np.ndarray:
+    """Up to LIGHTS_FIT_PIXELS pixels of the scene inside ``mask``: (m, P, c)."""
     _m, h, w, _c = scene.shape
     inside = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     ys, xs = np.nonzero(inside)
     if len(ys) > LIGHTS_FIT_PIXELS:
-        pick = np.random.default_rng(seed).choice(len(ys), LIGHTS_FIT_PIXELS, replace=False)
+        pick = np.sort(np.random.default_rng(seed).choice(len(ys), LIGHTS_FIT_PIXELS,
+                                                          replace=False))
         ys, xs = ys[pick], xs[pick]
+    return np.asarray(scene[:, ys, xs])
+
+
+def _lights_fit_pixels(pixels: np.ndarray, lights: Lights) -> float:
+    """:func:`lights_fit` of (m, P, c) scene pixels."""
     strength = lights.intensities.mean(axis=1)  # (m,)
-    values = np.asarray(scene[:, ys, xs], np.float64).mean(axis=-1).T / strength  # (P, m)
+    values = np.asarray(pixels, np.float64).mean(axis=-1).T / strength  # (P, m)
     directions = lights.directions  # (m, 3)
     finite = np.isfinite(values)
     values = np.where(finite, values, 0.0)
@@ -190,12 +205,14 @@ def check_lights(scene: np.ndarray, lights: Lights, mask, first_file: Path, enco
     ``other_encoding_residual`` and ``decoded_as`` ("linear" when the files are
     to be read so, else None).
     """
-    def fit(stack):
-        return lights_fit(stack, lights, mask)
+    pixels = _sample(scene, mask)  # both decodings of the same pixels, not the stack
 
-    fitted = fit(scene)
+    def fit(values):
+        return _lights_fit_pixels(values, lights)
+
+    fitted = fit(pixels)
     return dict(lights_fit_residual=fitted,
-                **_encoding_verdict(fit, scene, fitted, encoding, top_code, first_file,
+                **_encoding_verdict(fit, pixels, fitted, encoding, top_code, first_file,
                                     "the scene's shading under the lights"))
 
 
@@ -224,12 +241,15 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
         ``sphere_fit_residual``, ``other_encoding_residual`` and
         ``decoded_as`` ("linear" when the files are to be read so, else None).
     """
-    def fit(images):
-        return sphere_fit(images, gauge)
+    pixels = np.asarray(stack)[:, gauge.mask]  # (m, P, c): the sphere's pixels only
+    normals = gauge.normals[gauge.mask]
 
-    fitted = fit(stack)
+    def fit(values):
+        return _sphere_fit_pixels(values, normals)
+
+    fitted = fit(pixels)
     record = dict(sphere_fit_residual=fitted,
-                  **_encoding_verdict(fit, stack, fitted, encoding, top_code, first_file,
+                  **_encoding_verdict(fit, pixels, fitted, encoding, top_code, first_file,
                                       "the gauge's shading of a lit sphere"))
     other = record["other_encoding_residual"]
     best = fitted if other is None else min(fitted, other)

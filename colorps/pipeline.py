@@ -32,7 +32,7 @@ from .calibrate import calibrate_lights, sphere_from_mask
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
-from .gauge_check import check_gauge, check_lights, linear_codes
+from .gauge_check import check_gauge, check_lights
 from .hygiene import check_contents, check_names
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -269,7 +269,7 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
             checked = check_lights(scene, stacks.light_set, mask, stacks.scene_paths[0],
                                    encoding, top_code(stacks.scene_infos[0]))
             if checked["decoded_as"]:
-                scene, run = _read_as_linear(scene, stacks, run)
+                scene, run = _read_as_linear(scene, stacks, run, progress)
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress)
@@ -279,22 +279,23 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
                               camera=inputs.camera)
-    gauge_top = top_code(stacks.gauge_infos[0])
-    checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding, gauge_top)
+    checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
+                          top_code(stacks.gauge_infos[0]))
     if checked["decoded_as"]:
-        gauge_stack = linear_codes(gauge_stack, gauge_top)
-        scene, run = _read_as_linear(scene, stacks, run)
+        gauge_stack, _ = read_stack(stacks.gauge_paths, "linear", name="gauge")
+        scene, run = _read_as_linear(scene, stacks, run, progress)
     return gauge, gauge_stack, run, None, checked, scene
 
 
-def _read_as_linear(scene, stacks: _Stacks, run: Resolved):
-    """The scene and the settings of a run whose integer files are read as linear."""
+def _read_as_linear(scene, stacks: _Stacks, run: Resolved, progress: bool):
+    """The scene and the settings of a run whose integer files are read as linear
+    (read again: decoding the files costs less than re-encoding the stack)."""
     options = run.requested.replace(encoding="linear")  # levels still "auto" if asked
-    scene_top = top_code(stacks.scene_infos[0])
     if isinstance(scene, StackFiles):
         scene = StackFiles(scene.paths, scene.shape, "linear")
-    elif scene_top is not None:
-        scene = linear_codes(scene, scene_top)
+    elif top_code(stacks.scene_infos[0]) is not None:
+        del scene  # (the sRGB decoding is not kept beside the linear one)
+        scene, _ = read_stack(stacks.scene_paths, "linear", name="scene", progress=progress)
     return scene, resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], "linear"),
                           gauge=None if stacks.light_set is not None else
                           StackModel.of_file(stacks.gauge_infos[0], "linear"))
