@@ -152,6 +152,15 @@ class BRDF:
                     falloff=list(self.falloff), specular=list(self.specular),
                     shininess=self.shininess)
 
+    @classmethod
+    def from_dict(cls, record: dict) -> BRDF:
+        """The finish :meth:`as_dict` recorded (report.json's ``brdf``)."""
+        if list(record.get("falloff_knots", DIFFUSE_KNOTS)) != list(DIFFUSE_KNOTS):
+            raise InputError("brdf: its falloff is given at knots other than this "
+                             f"colorps's {DIFFUSE_KNOTS}")
+        return cls(tuple(record["falloff"]), tuple(record["specular"]),
+                   float(record["shininess"]))
+
 
 def _half_vectors(directions: np.ndarray) -> np.ndarray:
     half = np.asarray(directions, dtype=np.float64) + np.array([0.0, 0.0, 1.0])

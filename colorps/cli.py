@@ -301,6 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="folder for relit_001, relit_002, ...")
     rel.add_argument("--format", choices=RELIT_FORMATS, default="png",
                      help="8-bit sRGB PNG or linear float EXR")
+    rel.add_argument("--finish", choices=("lambert", "fitted"), default="lambert",
+                     help="Lambertian, or the finish a --lights run fitted (report.json)")
     rel.add_argument("--overwrite", action="store_true", help="replace existing images")
 
     view = sub.add_parser("view", formatter_class=_FORMATTER,
@@ -483,7 +485,8 @@ def _run(args, received: list[int]) -> int:
 
             written = relight_files(args.results, args.lights, args.out,
                                     intensities=args.light_intensities,
-                                    file_format=args.format, overwrite=args.overwrite)
+                                    file_format=args.format, finish=args.finish,
+                                    overwrite=args.overwrite)
             print(f"wrote {len(written)} relit images to {args.out}/")
         elif args.command == "view":
             _view(args)

@@ -421,7 +421,6 @@ def check_height_targets(out, mesh=None, *, overwrite: bool = False) -> None:
     OutputError
         A target exists (and not ``overwrite``) or its folder does not.
     """
-    from .errors import InputError
     from .mesh import MESH_FORMATS
 
     if Path(out).suffix.lower() != ".exr":
@@ -505,8 +504,10 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
     if exports.viewer:
         # One call writes the page and its data folder; "viewer" is listed so
         # that it is moved into place with the rest.
+        finish = (report or {}).get("brdf")  # a --lights run's fitted finish
         writers["index.html"] = lambda p: write_viewer(final(), p.parent,
-                                                       band_names=channel_names, title=title)
+                                                       band_names=channel_names, title=title,
+                                                       finish=finish)
         writers["viewer"] = lambda p: None
     about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS,
              "files": [*list(writers), "report.json"]}

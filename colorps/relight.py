@@ -1,7 +1,9 @@
 """Relit images: the recovered object under new distant lights.
 
-Each image is Lambertian: per band, the albedo times the light's intensity
-times max(0, n . l), linear, from ``normal.exr`` and ``albedo.exr`` of a
+Each image is, per band, the albedo times the light's intensity times the
+finish's shading: Lambertian, max(0, n . l), or the finish a run with calibrated
+lights fitted (:class:`colorps.brdf.BRDF`: a diffuse falloff and a Blinn-Phong
+highlight, view along +z), linear, from ``normal.exr`` and ``albedo.exr`` of a
 results folder (black where a pixel is not solved). The viewer (index.html)
 draws the same in the browser.
 """
@@ -13,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from .brdf import BRDF
 from .errors import InputError
 from .io import read_image, srgb_encode, write_image
 from .lights import read_lights
@@ -24,8 +27,9 @@ __all__ = ["RELIT_FORMATS", "relight", "relight_files"]
 RELIT_FORMATS = ("png", "exr")
 
 
-def relight(normals, albedo, direction, intensity=1.0) -> np.ndarray:
-    """The object under one distant light, Lambertian.
+def relight(normals, albedo, direction, intensity=1.0, brdf: BRDF | None = None
+            ) -> np.ndarray:
+    """The object under one distant light.
 
     Parameters
     ----------
@@ -37,6 +41,8 @@ def relight(normals, albedo, direction, intensity=1.0) -> np.ndarray:
         Towards the light, camera space (normalised here).
     intensity : float or (c,) array_like, optional
         The light's linear intensity per band.
+    brdf : BRDF, optional
+        The finish; default Lambertian.
 
     Returns
     -------
@@ -53,14 +59,20 @@ def relight(normals, albedo, direction, intensity=1.0) -> np.ndarray:
     light = np.asarray(direction, dtype=np.float64)
     light = light / np.linalg.norm(light)
     n = np.asarray(normals, dtype=np.float32)
-    cosine = np.maximum(n @ light.astype(np.float32), 0.0)
-    image = np.asarray(albedo, dtype=np.float32) * cosine[..., None] * \
+    if brdf is None or brdf.is_lambert:
+        shading = np.maximum(n @ light.astype(np.float32), 0.0)[..., None]
+    else:
+        c = np.shape(albedo)[-1]
+        solved = np.isfinite(n).all(axis=-1)
+        shading = np.zeros((*n.shape[:2], c), dtype=np.float32)
+        shading[solved] = brdf.shade(n[solved], light[None], np.ones((1, c)))[0]
+    image = np.asarray(albedo, dtype=np.float32) * shading * \
         np.asarray(intensity, dtype=np.float32)
     return np.where(np.isfinite(image), image, np.float32(0.0)).astype(np.float32)
 
 
 def relight_files(results, lights, out, *, intensities=None,
-                  file_format: Literal["png", "exr"] = "png",
+                  file_format: Literal["png", "exr"] = "png", finish: str = "lambert",
                   overwrite: bool = False) -> list[Path]:
     """Write relit images of a results folder, one per light of a light file.
 
@@ -76,6 +88,9 @@ def relight_files(results, lights, out, *, intensities=None,
         A light intensities file.
     file_format : {"png", "exr"}, optional
         8-bit sRGB PNG (clipped at 1), or linear float EXR.
+    finish : {"lambert", "fitted"}, optional
+        "fitted": the finish the run fitted (report.json's ``brdf``, a run with
+        calibrated lights); refused when the results have none.
     overwrite : bool, optional
         Replace relit images already there.
 
@@ -94,6 +109,9 @@ def relight_files(results, lights, out, *, intensities=None,
     if normals.shape[-1] != 3 or albedo.shape[:2] != normals.shape[:2]:
         raise InputError(f"{folder}: normal.exr and albedo.exr do not form one result "
                          f"(shapes {normals.shape} and {albedo.shape})")
+    brdf = _fitted_finish(folder) if finish == "fitted" else None
+    if finish not in ("lambert", "fitted"):
+        raise InputError(f"finish: expected 'lambert' or 'fitted', got {finish!r}")
     light_set = read_lights(lights, intensities)
     c = albedo.shape[-1]
     if light_set.intensities.shape[1] not in (1, c):
@@ -102,7 +120,8 @@ def relight_files(results, lights, out, *, intensities=None,
 
     def writer(k):
         def write(path):
-            image = relight(normals, albedo, light_set.directions[k], light_set.intensities[k])
+            image = relight(normals, albedo, light_set.directions[k], light_set.intensities[k],
+                            brdf)
             if file_format == "png":
                 return write_image(path, srgb_encode(np.clip(image, 0.0, 1.0)), dtype="uint8")
             return write_image(path, image)
@@ -112,3 +131,17 @@ def relight_files(results, lights, out, *, intensities=None,
     writers = {f"relit_{k + 1:0{digits}d}.{file_format}": writer(k)
                for k in range(light_set.images)}
     return write_folder(out, writers, overwrite=overwrite)
+
+
+def _fitted_finish(folder: Path) -> BRDF:
+    """The finish recorded in a results folder's report.json."""
+    import json
+
+    try:
+        record = json.loads((folder / "report.json").read_text()).get("brdf")
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{folder / 'report.json'}: cannot read it ({exc})") from None
+    if not record:
+        raise InputError(f"{folder / 'report.json'}: records no fitted finish (only a run "
+                         "with --lights and --brdf fitted has one); use --finish lambert")
+    return BRDF.from_dict(record)

@@ -6,7 +6,8 @@ and its data are scripts in ``viewer/`` (a page opened from a file may run
 scripts beside it, but may not read the pixels of images beside it). It shows
 
 * the object **relit** under a light the user drags (Lambertian: linear albedo
-  times the cosine of the light's angle to the normal, then sRGB),
+  times the cosine of the light's angle to the normal, then sRGB; or, after a
+  run with calibrated lights, the finish it fitted, as :mod:`colorps.relight`),
 * the normals, albedo, shaded relief, height, quality, uncertainty, reasons
   and dropped lights, each with its colour bar or legend,
 * the values under the cursor: pixel, reason, normal, albedo per band, height,
@@ -98,7 +99,8 @@ def pyramid_steps(shape: tuple[int, int], max_side: int = VIEWER_MAX_SIDE,
 
 
 def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str = "",
-                 max_side: int = VIEWER_MAX_SIDE, min_side: int = VIEWER_MIN_SIDE) -> Path:
+                 finish: dict | None = None, max_side: int = VIEWER_MAX_SIDE,
+                 min_side: int = VIEWER_MIN_SIDE) -> Path:
     """Write ``index.html`` and ``viewer/`` for a reconstruction into a folder.
 
     Parameters
@@ -111,6 +113,9 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
         Names of the albedo's bands (default R, G, B / Y / B0, B1, ...).
     title : str, optional
         The page's heading.
+    finish : dict, optional
+        A fitted finish (:meth:`colorps.brdf.BRDF.as_dict`, report.json's
+        ``brdf``): the page can relight with it.
     max_side, min_side : int, optional
         The pyramid's bounds (see :func:`pyramid_steps`).
 
@@ -142,6 +147,7 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     index = _index(result, steps, ranges, band_names, title)
+    index["finish"] = finish
     page = out / "index.html"
     page.write_text(_page(index, title), encoding="utf-8")
     return page

@@ -147,3 +147,39 @@ def test_relight_refuses_a_folder_without_results(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "normal.exr" in err and "Traceback" not in err
     assert not (tmp_path / "r").exists()
+
+
+def test_relight_with_the_fitted_finish(results, tmp_path):
+    """--finish fitted shades with report.json's brdf: a diffuse falloff and a
+    Blinn-Phong highlight (view along +z), as the model states it."""
+    import shutil
+
+    from colorps.brdf import BRDF, DIFFUSE_KNOTS
+
+    folder = tmp_path / "glossy"
+    shutil.copytree(results["opengl"], folder)
+    report = json.loads((folder / "report.json").read_text())
+    falloff = (1.0, 0.9, 0.9, 0.95, 1.0, 1.0, 1.0, 1.0)
+    report["brdf"] = BRDF(falloff, (0.3,), 40.0).as_dict()
+    (folder / "report.json").write_text(json.dumps(report))
+    lights = tmp_path / "lights.txt"
+    light = np.array([0.5, 0.3, 0.81])
+    light /= np.linalg.norm(light)
+    np.savetxt(lights, light[None])
+    assert main(["relight", str(folder), "--lights", str(lights), "--out",
+                 str(tmp_path / "r"), "--format", "exr", "--finish", "fitted"]) == 0
+    image, _ = read_image(next((tmp_path / "r").glob("relit_*.exr")))
+    normals, _ = read_image(folder / "normal.exr")
+    albedo, _ = read_image(folder / "albedo.exr")
+    solved = np.isfinite(normals).all(axis=-1)
+    n = normals[solved].astype(np.float64)
+    cosine = np.maximum(n @ light, 0.0)
+    half = (light + [0, 0, 1]) / np.linalg.norm(light + [0, 0, 1])
+    shading = cosine * np.interp(cosine, DIFFUSE_KNOTS, falloff) + \
+        0.3 * 42.0 / 2 * np.clip(n @ half, 0, 1) ** 40 * cosine
+    np.testing.assert_allclose(image[solved], albedo[solved] * shading[:, None], atol=2e-3,
+                               rtol=1e-3)
+    # A folder whose run fitted no finish says so.
+    assert main(["relight", str(results["opengl"]), "--lights", str(lights), "--out",
+                 str(tmp_path / "none"), "--finish", "fitted"]) == 1
+    assert not (tmp_path / "none").exists()

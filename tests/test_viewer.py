@@ -168,7 +168,7 @@ def _frame(page):
     return frame
 
 
-def _expected_relit(frame, normals, albedo):
+def _expected_relit(frame, normals, albedo, brdf=None):
     """What the canvas should show, from normal.exr and albedo.exr (numpy)."""
     h, w = frame["h"], frame["w"]
     canvas = frame["data"].astype(np.int64).reshape(h, w, 4)[..., :3]
@@ -177,7 +177,7 @@ def _expected_relit(frame, normals, albedo):
     y = np.floor(frame["cy"] + (py + 0.5 - h / 2) / frame["zoom"]).astype(np.int64)
     inside = (x >= 0) & (y >= 0) & (x < normals.shape[1]) & (y < normals.shape[0])
     solved = np.zeros_like(inside)
-    lit = relight(normals, albedo, frame["light"]) * 2.0 ** frame["exposure"]
+    lit = relight(normals, albedo, frame["light"], brdf=brdf) * 2.0 ** frame["exposure"]
     expected = np.rint(srgb_encode(np.clip(lit, 0, 1)) * 255)
     solved[inside] = np.isfinite(normals[y[inside], x[inside]]).all(axis=-1)
     return canvas[solved], expected[y[solved], x[solved]]
@@ -273,3 +273,28 @@ def _loaded_result(folder):
         uncertainty=read["uncertainty"][..., 0], height=read["height"][..., 0],
         reason=reason, lights_dropped_count=np.zeros(reason.shape, np.uint8),
         stats=SimpleNamespace(solved=int((reason == 0).sum()), mode="colour"))
+
+
+def test_page_relights_with_the_fitted_finish(browser, results, tmp_path):
+    """With a fitted finish the page relights as colorps.relight does with it, and
+    the checkbox turns it off again."""
+    from colorps.brdf import BRDF
+
+    finish = BRDF((1.0, 0.9, 0.9, 0.95, 1.0, 1.0, 1.0, 1.0), (0.3,), 40.0)
+    folder = tmp_path / "glossy"
+    shutil.copytree(results, folder)
+    write_viewer(_loaded_result(results), folder, finish=finish.as_dict())
+    errors = []
+    page = _open(browser, folder, errors)
+    normals, _ = read_image(results / "normal.exr")
+    albedo, _ = read_image(results / "albedo.exr")
+    assert page.is_visible("#finish")
+    frame = _frame(page)
+    shown, expected = _expected_relit(frame, normals, albedo, finish)
+    assert np.abs(shown - expected).max() <= 2
+    page.uncheck("#finish")
+    frame = _frame(page)
+    shown, expected = _expected_relit(frame, normals, albedo)
+    assert np.abs(shown - expected).max() <= 2
+    assert errors == []
+    page.close()
