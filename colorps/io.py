@@ -176,16 +176,17 @@ def check_stack_files(paths: Sequence, *, name: str = "stack",
         raise ImageReadError(f"{name}: no images given")
     infos = [read_info(p) for p in paths]
     first = infos[0]
-    for info in infos[1:]:
+    for k, info in enumerate(infos[1:], start=2):
+        where = f"{info.path} (image {k} of {len(infos)} of the {name})"
         if (info.width, info.height, info.channels) != (first.width, first.height,
                                                         first.channels):
             raise ImageReadError(
-                f"{info.path}: size {info.width}x{info.height} with {info.channels} "
-                f"channel(s) differs from {first.path} ({first.width}x{first.height} with "
-                f"{first.channels})")
+                f"{where}: size {info.width}x{info.height} with {info.channels} "
+                f"channel(s) differs from image 1, {first.path} ({first.width}x"
+                f"{first.height} with {first.channels})")
         if info.pixel_type != first.pixel_type:
             raise ImageReadError(
-                f"{info.path}: pixel type {info.pixel_type} differs from {first.path} "
+                f"{where}: pixel type {info.pixel_type} differs from image 1, {first.path} "
                 f"({first.pixel_type}); clip and dark levels follow from the pixel type, "
                 "so every image of a stack must be stored alike")
     if max_bytes is not None:

@@ -200,6 +200,7 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
             raise InputError(f"{source}: the intensities have {bands} values per light but "
                              f"{scene_paths[0]} has {scene_infos[0].channels} channel(s); give "
                              "one value or one per channel")
+        _check_stack_exposures(scene_infos)
         return dataclasses.replace(stacks, light_set=light_set)
     gauge_paths = expand_paths(inputs.gauge, name="gauge")
     check_natural_order(gauge_paths, inputs.gauge, "gauge")
@@ -355,6 +356,23 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
                             report=report, exports=exports, overwrite=overwrite,
                             finished=finished, progress=progress)
     return result if finished is None else finished.result()
+
+
+def _check_stack_exposures(scene_infos) -> None:
+    """With calibrated lights (no gauge exposed alike to cancel it), warn when the
+    headers say the scene's images were exposed differently: naming the image
+    most unlike the others, and its place."""
+    from .io import relative_exposures
+
+    ratios = relative_exposures(scene_infos, [scene_infos[0]] * len(scene_infos))
+    if ratios is None or ratios.max() <= ratios.min() * (1 + EXPOSURE_TOLERANCE):
+        return
+    k = int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
+    warnings.warn(f"{scene_infos[k].path} (image {k + 1} of {len(ratios)}): exposed "
+                  f"{ratios[k] / np.median(ratios):.3g}x the scene's usual exposure (EXIF); "
+                  "with calibrated lights every image needs the same exposure (or "
+                  "--light-intensities that include it), or the normals are biased",
+                  ExposureWarning, stacklevel=3)
 
 
 def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:

@@ -391,6 +391,31 @@ def test_exposures_of_scene_and_gauge_are_checked(capture, tmp_path, capsys):
     assert report["exposure_scene_over_gauge"] is None
 
 
+def test_unequal_exposures_within_a_light_file_run_are_warned_about(capture, tmp_path,
+                                                                   capsys):
+    """With calibrated lights no gauge photo cancels an image's exposure: one image
+    exposed 2x the others is named, with its place in the stack."""
+    from colorps import Lights, write_lights
+
+    folder, info = capture
+    lights = tmp_path / "lights.txt"
+    write_lights(Lights(np.array(info["light_directions"])[:, 0],
+                        np.array(info["light_colours"])[:, 0]), lights)
+    data = tmp_path / "data"
+    data.mkdir()
+    for k, time_s in enumerate([1 / 125, 1 / 125, 2 / 125, 1 / 125]):
+        copy_with_exposure(folder / f"scene_{k:02d}.exr", data / f"scene_{k:02d}.exr", time_s)
+    command = ["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights", str(lights),
+               "--brdf", "lambert", "--out", str(tmp_path / "o"), "--quiet", "--no-height"]
+    assert main(command) == 0
+    err = capsys.readouterr().err
+    assert "scene_02.exr (image 3 of 4): exposed 2x the scene's usual exposure" in err
+    for k in range(4):  # alike: nothing said
+        copy_with_exposure(folder / f"scene_{k:02d}.exr", data / f"scene_{k:02d}.exr", 1 / 125)
+    assert main(command[:-4] + ["--out", str(tmp_path / "o2"), "--quiet", "--no-height"]) == 0
+    assert "exposed" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("stack", ["scene", "gauge"])
 def test_a_file_given_twice_is_refused_naming_it(capture, tmp_path, capsys, stack):
     """A stack that lists one image twice (a typo in a list file, a glob and a

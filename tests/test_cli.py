@@ -129,7 +129,7 @@ def test_mismatched_image_sizes_name_the_file(sample, tmp_path, capsys):
     args = args_for(sample, tmp_path / "o")
     args[args.index("--scene") + 1] = str(odd / "scene_*.exr")
     assert main(args) == 1
-    assert "scene_03.exr: size 64x60" in capsys.readouterr().err
+    assert "scene_03.exr (image 4 of 5 of the scene): size 64x60" in capsys.readouterr().err
 
 
 def test_synth_and_demo(tmp_path, capsys):

@@ -85,9 +85,10 @@ def test_stack_checks_sizes_and_channels(tmp_path):
     c = write_image(tmp_path / "c.exr", np.ones((4, 5, 1)))
     stack, _ = read_stack([a, a])
     assert stack.shape == (2, 4, 5, 3)
-    with pytest.raises(ImageReadError, match="b.exr: size 6x4 .* differs from .*a.exr"):
+    with pytest.raises(ImageReadError, match=r"b.exr \(image 2 of 2 of the stack\): size "
+                                              r"6x4 .* differs from image 1, .*a.exr"):
         read_stack([a, b])
-    with pytest.raises(ImageReadError, match="c.exr: .*1 channel"):
+    with pytest.raises(ImageReadError, match=r"c.exr \(image 2 of 2 of the stack\): .*1 channel"):
         read_stack([a, c])
 
 
