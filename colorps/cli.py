@@ -53,6 +53,16 @@ def _sphere(text: str):
     return cx, cy, r
 
 
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number 0-65535, got {text!r}")
+    return port
+
+
 def _camera(text: str):
     """--camera's text as a Camera (None for "orthographic")."""
     try:
@@ -311,7 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--serve", action="store_true",
                       help="serve it over http on 127.0.0.1 instead of opening the file "
                            "(until Ctrl-C)")
-    view.add_argument("--port", type=int, default=0,
+    view.add_argument("--port", type=_port, default=0,
                       help="with --serve: the port (default: any free one)")
 
     demo = sub.add_parser("demo", formatter_class=_FORMATTER,
@@ -532,7 +542,11 @@ def _view(args) -> None:
         else:
             print(f"no browser found here: open {url} in one, or use --serve")
         return
-    server = serve_viewer(args.results, args.port)
+    try:
+        server = serve_viewer(args.results, args.port)
+    except OSError as exc:
+        raise InputError(f"--port {args.port}: cannot serve on it ({exc.strerror or exc})") \
+            from None
     print(f"serving the viewer at http://127.0.0.1:{server.server_port}/index.html "
           "(Ctrl-C to stop)", flush=True)
     try:

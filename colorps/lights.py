@@ -125,7 +125,8 @@ def _numbers(path: Path, lines: Sequence[str], width: int, what: str) -> np.ndar
         try:
             rows.append([float(v) for v in parts])
         except ValueError:
-            raise InputError(f"{path}: line {number} is not {width} numbers ({line!r})") \
+            raise InputError(f"{path}: line {number} is not {width} number"
+                             f"{'s' if width > 1 else ''} ({line!r})") \
                 from None
         if len(rows[-1]) != width:
             raise InputError(f"{path}: line {number} has {len(rows[-1])} values, expected "

@@ -298,3 +298,18 @@ def test_page_relights_with_the_fitted_finish(browser, results, tmp_path):
     assert np.abs(shown - expected).max() <= 2
     assert errors == []
     page.close()
+
+
+def test_serving_on_a_bad_or_busy_port_is_one_line(results, capsys):
+    import socket
+
+    with pytest.raises(SystemExit) as exited:
+        main(["view", str(results), "--serve", "--port", "99999"])
+    assert exited.value.code == 2 and "0-65535" in capsys.readouterr().err
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["view", str(results), "--serve", "--port", str(port)]) == 1
+    err = capsys.readouterr().err
+    assert f"--port {port}: cannot serve on it" in err and "Traceback" not in err
