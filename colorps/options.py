@@ -19,7 +19,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["FLOAT_DARK_LEVEL", "MIN_IMAGES", "Options", "dark_threshold"]
+__all__ = ["FLOAT_DARK_LEVEL", "MIN_IMAGES", "NORMAL_CONVENTIONS", "Options", "dark_threshold"]
 
 #: Noise floor of one measurement of a floating-point image (linear units): the
 #: dark level that "auto" means for EXR / float TIFF files and for arrays.
@@ -29,6 +29,9 @@ MIN_IMAGES = {"mono": 3, "colour": 2}
 
 _MODES = ("colour", "mono")
 _ENCODINGS = ("auto", "linear", "srgb")
+#: Conventions of normal.png: its green channel points up (OpenGL, as normal.exr
+#: and camera space) or down (DirectX).
+NORMAL_CONVENTIONS = ("opengl", "directx")
 _MESHES = (None, "ply", "obj", "both")
 _BRDFS = ("fitted", "lambert")
 
@@ -206,8 +209,8 @@ class Options:
                              f"got {self.encoding!r}")
         if self.brdf not in _BRDFS:
             raise InputError(f"brdf: expected 'fitted' or 'lambert', got {self.brdf!r}")
-        if self.normal_convention not in ("opengl", "directx"):
-            raise InputError(f"normal_convention: expected 'opengl' or 'directx', "
+        if self.normal_convention not in NORMAL_CONVENTIONS:
+            raise InputError(f"normal_convention: expected one of {NORMAL_CONVENTIONS}, "
                              f"got {self.normal_convention!r}")
         if not isinstance(self.viewer, bool):
             raise InputError(f"viewer: expected True or False, got {self.viewer!r}")

@@ -87,6 +87,7 @@ from .figures import (
 )
 from .interrupts import interrupts_kept
 from .io import file_mode, srgb_encode, write_image
+from .options import NORMAL_CONVENTIONS
 from .reasons import Reason, reason_picture
 from .results import Reconstruction
 from .viewer import VIEWER_FILES, write_viewer
@@ -94,7 +95,6 @@ from .viewer import VIEWER_FILES, write_viewer
 __all__ = [
     "HEIGHT_FILES",
     "MESH_FILES",
-    "NORMAL_CONVENTIONS",
     "OUTPUT_FILES",
     "Exports",
     "check_height_targets",
@@ -110,8 +110,6 @@ __all__ = [
 OUTPUT_FILES = ("normal.exr", "normal.png", "albedo.exr", "albedo.png", "quality.exr",
                 "quality.png", "invalid.png", "lights.png", "lights.exr", "uncertainty.exr",
                 "uncertainty.png", *VIEWER_FILES, "report.json")
-#: Conventions of normal.png: which way its green channel points.
-NORMAL_CONVENTIONS = ("opengl", "directx")
 #: Written when the result has a height map.
 HEIGHT_FILES = ("height.exr", "height.tif", "height.png", "relief.png", "overview.png")
 #: Written when asked for, by kind.
