@@ -74,22 +74,37 @@ def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
 
 
 def _sphere_fit_pixels(pixels: np.ndarray, normals: np.ndarray) -> float:
-    """:func:`sphere_fit` of the gauge's (m, P, c) pixels at their (P, 3) normals."""
-    values = np.asarray(pixels, dtype=np.float64).mean(axis=-1)  # (m, P)
-    residuals = []
-    for image in values:
-        lit = np.isfinite(image) & (image > LIT_FRACTION * np.nanmax(image, initial=0.0))
-        if lit.sum() < 10:
-            continue
-        for _ in range(FIT_ROUNDS):
-            light = np.linalg.lstsq(normals[lit], image[lit], rcond=None)[0]
-            shade = normals @ light
-            lit = np.isfinite(image) & (shade > LIT_FRACTION * np.linalg.norm(light))
-            if lit.sum() < 10:
-                break
-        r = image[lit] - shade[lit]
-        residuals.append(np.sqrt((r * r).sum() / max((image[lit] ** 2).sum(), 1e-30)))
-    return float(np.median(residuals)) if residuals else float("nan")
+    """:func:`sphere_fit` of the gauge's (m, P, c) pixels at their (P, 3) normals:
+    one light fitted per image."""
+    return _lambert_residual(np.asarray(pixels, np.float64).mean(axis=-1), normals,
+                             min_lit=10)
+
+
+def _lambert_residual(values: np.ndarray, design: np.ndarray, min_lit: int) -> float:
+    """Median over the rows of ``values`` (R, K) of the relative RMS residual of a
+    Lambertian fit: each row r is fitted as design @ x_r (``design`` (K, 3): the
+    normals of a gauge's pixels, or the directions of the lights) by least
+    squares on its lit entries, FIT_ROUNDS times, an entry lit where the fit
+    gives it at least LIT_FRACTION of |x_r| (at first: of the row's largest
+    value); rows left with fewer than ``min_lit`` lit entries do not count.
+    The residual is sqrt(sum r^2 / sum I^2) over the lit entries; NaN when no
+    row counts."""
+    finite = np.isfinite(values)
+    values = np.where(finite, values, 0.0)
+    lit = finite & (values > LIT_FRACTION * values.max(axis=1, keepdims=True))
+    for _ in range(FIT_ROUNDS):
+        weight = lit.astype(np.float64)
+        normal = np.einsum("rk,ka,kb->rab", weight, design, design) + 1e-12 * np.eye(3)
+        x = np.linalg.solve(normal, np.einsum("rk,ka,rk->ra", weight, design,
+                                              values)[..., None])[..., 0]
+        shade = x @ design.T  # (R, K)
+        lit = finite & (shade > LIT_FRACTION * np.linalg.norm(x, axis=1, keepdims=True))
+    enough = lit.sum(axis=1) >= min_lit
+    if not enough.any():
+        return float("nan")
+    r2 = np.where(lit, (values - shade) ** 2, 0.0).sum(axis=1)
+    i2 = np.where(lit, values ** 2, 0.0).sum(axis=1)
+    return float(np.median(np.sqrt(r2[enough] / np.maximum(i2[enough], 1e-30))))
 
 
 def lights_fit(scene: np.ndarray, lights: Lights, mask: np.ndarray | None = None,
@@ -131,27 +146,11 @@ def _sample(scene: np.ndarray, mask, seed: int = 0) -> np.ndarray:
 
 
 def _lights_fit_pixels(pixels: np.ndarray, lights: Lights) -> float:
-    """:func:`lights_fit` of (m, P, c) scene pixels."""
+    """:func:`lights_fit` of (m, P, c) scene pixels: one albedo-scaled normal
+    fitted per pixel."""
     strength = lights.intensities.mean(axis=1)  # (m,)
     values = np.asarray(pixels, np.float64).mean(axis=-1).T / strength  # (P, m)
-    directions = lights.directions  # (m, 3)
-    finite = np.isfinite(values)
-    values = np.where(finite, values, 0.0)
-    lit = finite & (values > LIT_FRACTION * values.max(axis=1, keepdims=True))
-    for _ in range(FIT_ROUNDS):
-        weight = lit.astype(np.float64)
-        normal = np.einsum("pj,ja,jb->pab", weight, directions, directions)
-        normal += 1e-12 * np.eye(3)
-        b = np.linalg.solve(normal, np.einsum("pj,ja,pj->pa", weight, directions,
-                                              values)[..., None])[..., 0]
-        shade = b @ directions.T  # (P, m)
-        lit = finite & (shade > LIT_FRACTION * np.linalg.norm(b, axis=1, keepdims=True))
-    enough = lit.sum(axis=1) >= 4
-    if not enough.any():
-        return float("nan")
-    r2 = np.where(lit, (values - shade) ** 2, 0.0).sum(axis=1)
-    i2 = np.where(lit, values ** 2, 0.0).sum(axis=1)
-    return float(np.median(np.sqrt(r2[enough] / np.maximum(i2[enough], 1e-30))))
+    return _lambert_residual(values, lights.directions, min_lit=4)
 
 
 def linear_codes(values: np.ndarray, top_code: int) -> np.ndarray:
