@@ -89,7 +89,7 @@ from .interrupts import interrupts_kept
 from .io import file_mode, srgb_encode, write_image
 from .options import NORMAL_CONVENTIONS
 from .reasons import Reason, reason_picture
-from .results import Reconstruction
+from .results import Reconstruction, default_band_names
 from .viewer import VIEWER_FILES, write_viewer
 
 __all__ = [
@@ -450,7 +450,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
 
     c = result.albedo.shape[-1]
     if channel_names is None:
-        channel_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
+        channel_names = default_band_names(c)
     solved = result.solved[..., None]
     width = result.normals.shape[1]
     title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
@@ -512,7 +512,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
 
     def report_json(p):
         if final().height is not None:
-            lo, hi = height_codes(final().height)[1:]
+            lo, hi = _height_range(final().height)
             exported["height.png"] = {"unit": "pixels", "lo": lo, "hi": hi,
                                       "decoding": "code 0: outside; else lo + (code - 1) * "
                                                   "(hi - lo) / 65534"}
@@ -539,9 +539,13 @@ def normal_picture(normals, convention: str = "opengl") -> np.ndarray:
 def height_codes(height) -> tuple[np.ndarray, float, float]:
     """height.png's 16-bit codes (:mod:`colorps.codes`) of the heights as
     height.exr stores them (float32), and their lo and hi."""
-    stored = np.asarray(height, dtype=np.float32)
-    lo, hi = code_range(stored)
-    return encode(stored, lo, hi), lo, hi
+    lo, hi = _height_range(height)
+    return encode(np.asarray(height, dtype=np.float32), lo, hi), lo, hi
+
+
+def _height_range(height) -> tuple[float, float]:
+    """The range (lo, hi) of height.png's codes: that of the heights as stored (float32)."""
+    return code_range(np.asarray(height, dtype=np.float32))
 
 
 #: Images per float32 channel of lights.exr (exact integers up to 2^24).

@@ -295,7 +295,6 @@ def _read_as_linear(scene, stacks: _Stacks, run: Resolved, progress: bool):
     if isinstance(scene, StackFiles):
         scene = StackFiles(scene.paths, scene.shape, "linear")
     elif top_code(stacks.scene_infos[0]) is not None:
-        del scene  # (the sRGB decoding is not kept beside the linear one)
         scene, _ = read_stack(stacks.scene_paths, "linear", name="scene", progress=progress)
     return scene, resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], "linear"),
                           gauge=None if stacks.light_set is not None else
@@ -358,6 +357,14 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
     return result if finished is None else finished.result()
 
 
+def _furthest_off(ratios: np.ndarray) -> int | None:
+    """The image whose exposure ratio is furthest from the median, when the ratios
+    spread more than EXPOSURE_TOLERANCE; None when they agree."""
+    if ratios.max() <= ratios.min() * (1 + EXPOSURE_TOLERANCE):
+        return None
+    return int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
+
+
 def _check_stack_exposures(scene_infos) -> None:
     """With calibrated lights (no gauge exposed alike to cancel it), warn when the
     headers say the scene's images were exposed differently: naming the image
@@ -365,9 +372,9 @@ def _check_stack_exposures(scene_infos) -> None:
     from .io import relative_exposures
 
     ratios = relative_exposures(scene_infos, [scene_infos[0]] * len(scene_infos))
-    if ratios is None or ratios.max() <= ratios.min() * (1 + EXPOSURE_TOLERANCE):
+    k = None if ratios is None else _furthest_off(ratios)
+    if k is None:
         return
-    k = int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
     warnings.warn(f"{scene_infos[k].path} (image {k + 1} of {len(ratios)}): exposed "
                   f"{ratios[k] / np.median(ratios):.3g}x the scene's usual exposure (EXIF); "
                   "with calibrated lights every image needs the same exposure (or "
@@ -384,8 +391,8 @@ def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
     if ratios is None:
         return None
     shown = ", ".join(f"{r:.3g}" for r in ratios)
-    if ratios.max() > ratios.min() * (1 + EXPOSURE_TOLERANCE):
-        k = int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
+    k = _furthest_off(ratios)
+    if k is not None:
         warnings.warn(f"{scene_infos[k].path}: scene and gauge were exposed differently "
                       f"under different lights (scene / gauge exposure per image, from "
                       f"EXIF: {shown}); each light's scene and gauge photos need the same "

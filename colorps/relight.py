@@ -109,9 +109,9 @@ def relight_files(results, lights, out, *, intensities=None,
     if normals.shape[-1] != 3 or albedo.shape[:2] != normals.shape[:2]:
         raise InputError(f"{folder}: normal.exr and albedo.exr do not form one result "
                          f"(shapes {normals.shape} and {albedo.shape})")
-    brdf = _fitted_finish(folder) if finish == "fitted" else None
     if finish not in ("lambert", "fitted"):
         raise InputError(f"finish: expected 'lambert' or 'fitted', got {finish!r}")
+    brdf = _fitted_finish(folder) if finish == "fitted" else None
     light_set = read_lights(lights, intensities)
     c = albedo.shape[-1]
     if light_set.intensities.shape[1] not in (1, c):

@@ -30,6 +30,7 @@ __all__ = [
     "RunClock",
     "Timings",
     "combine_statistics",
+    "default_band_names",
     "low_solved_message",
     "run_statistics",
 ]
@@ -363,6 +364,18 @@ def combine_statistics(tiles: list[ReconstructionStats], matched: list[int],
         warnings=tuple(warnings_said), refined=total("refined"),
         uncertainty_median=_median(refined), uncertainty_p95=_percentile(refined, 95),
         seconds=dataclasses.replace(timing, total=seconds, integration=None))
+
+
+def default_band_names(bands: int) -> list[str]:
+    """The names of an albedo's bands when the input's are not known: Y for one,
+    R, G, B for three, else B0, B1, ...
+
+    Examples
+    --------
+    >>> default_band_names(3), default_band_names(2)
+    (['R', 'G', 'B'], ['B0', 'B1'])
+    """
+    return {1: ["Y"], 3: ["R", "G", "B"]}.get(bands, [f"B{k}" for k in range(bands)])
 
 
 def low_solved_message(reason: np.ndarray, mask: np.ndarray, solved: np.ndarray

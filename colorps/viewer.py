@@ -60,7 +60,7 @@ from .figures import (
 )
 from .io import write_image
 from .reasons import Reason
-from .results import Reconstruction
+from .results import Reconstruction, default_band_names
 
 __all__ = ["VIEWER_FILES", "VIEWER_MAX_SIDE", "VIEWER_MIN_SIDE", "pyramid_steps",
            "serve_viewer", "viewer_page", "write_viewer"]
@@ -184,7 +184,7 @@ def _index(result: Reconstruction, steps, ranges, band_names, title) -> dict:
     h, w = result.normals.shape[:2]
     c = result.albedo.shape[-1]
     if band_names is None:
-        band_names = {1: ["Y"], 3: ["R", "G", "B"]}.get(c, [f"B{k}" for k in range(c)])
+        band_names = default_band_names(c)
     bands = list(band_names)[:1] if c == 1 else list(band_names)[:3]
 
     def scale(s):
