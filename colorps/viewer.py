@@ -126,10 +126,10 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     """
     out = Path(out_dir)
     maps = _maps(result)
-    ranges = {name: [code_range(values[..., k]) for k in range(values.shape[-1])]
-              for name, values in maps.items()}
-    ranges["normal"] = [(-1.0, 1.0)] * 3
-    ranges["codes"] = [_COUNT_RANGE] * 2
+    # Normals and codes have fixed ranges; the other maps span their values.
+    ranges = {"normal": [(-1.0, 1.0)] * 3, "codes": [_COUNT_RANGE] * 2,
+              **{name: [code_range(maps[name][..., k]) for k in range(maps[name].shape[-1])]
+                 for name in ("albedo", "scalars")}}
     steps = pyramid_steps(result.normals.shape, max_side, min_side)
     data = out / "viewer"
     data.mkdir(exist_ok=True)
@@ -146,8 +146,7 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
                     f"colorpsLevel({k}, {json.dumps(images)});\n", encoding="utf-8")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    index = _index(result, steps, ranges, band_names, title)
-    index["finish"] = finish
+    index = _index(result, steps, ranges, band_names, title, finish)
     page = out / "index.html"
     page.write_text(_page(index, title), encoding="utf-8")
     return page
@@ -179,7 +178,7 @@ def _png_pair(values: np.ndarray, ranges, prefix: Path) -> list[str]:
     return urls
 
 
-def _index(result: Reconstruction, steps, ranges, band_names, title) -> dict:
+def _index(result: Reconstruction, steps, ranges, band_names, title, finish) -> dict:
     """What the page knows besides the levels: sizes, ranges, keys, scales."""
     h, w = result.normals.shape[:2]
     c = result.albedo.shape[-1]
@@ -193,7 +192,7 @@ def _index(result: Reconstruction, steps, ranges, band_names, title) -> dict:
     return {
         "title": title, "width": w, "height": h, "bands": bands,
         "levels": [{"step": s, "width": -(-w // s), "height": -(-h // s)} for s in steps],
-        "ranges": ranges, "has_height": result.height is not None,
+        "ranges": ranges, "has_height": result.height is not None, "finish": finish,
         "colour_map": COLOUR_MAP_STOPS,
         "scales": {"quality": scale(QUALITY_SCALE), "uncertainty": scale(UNCERTAINTY_SCALE)},
         "reasons": [{"code": int(r), "label": r.label, "colour": r.colour} for r in Reason],
