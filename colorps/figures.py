@@ -17,7 +17,7 @@ from .io import srgb_encode
 from .reasons import Reason
 
 __all__ = ["COLOUR_MAP_STOPS", "DROPPED_COLOURS", "QUALITY_SCALE", "UNCERTAINTY_SCALE", "ColourScale", "as_rgb",
-           "colour_mapped", "dropped_legend", "dropped_picture", "legend", "overview", "overview_step", "reason_legend", "shaded_relief", "with_colour_bar",
+           "colour_mapped", "dropped_entries", "dropped_legend", "dropped_picture", "legend", "overview", "overview_step", "reason_legend", "shaded_relief", "with_colour_bar",
            "with_key"]
 
 #: The overview's panels are drawn from images subsampled to at most this many
@@ -226,7 +226,11 @@ UNCERTAINTY_SCALE = ColourScale("uncertainty: 68 % radius of the normal (degrees
 
 def colour_mapped(values, scale: ColourScale) -> np.ndarray:
     """(H, W, 3) float32 sRGB picture of a map through the colour map; NaN is black."""
-    position = scale.position(values)
+    return _colours_at(scale.position(values))
+
+
+def _colours_at(position: np.ndarray) -> np.ndarray:
+    """The colour map at positions 0..1 (float32 sRGB, (..., 3)); NaN is black."""
     stops = np.asarray(COLOUR_MAP_STOPS, dtype=np.float32) / 255.0
     at = np.nan_to_num(position, nan=0.0) * (len(stops) - 1)
     below = np.minimum(at.astype(np.int64), len(stops) - 2)
@@ -249,24 +253,16 @@ def with_colour_bar(picture, scale: ColourScale) -> np.ndarray:
     width = np.shape(picture)[1]
     text = _key_text_px(width)
     bar_width = max(8 * text, min(width - 3 * text, 24 * text))
-    bar = colour_mapped(_bar_values(scale, bar_width), scale)
-    items = [("bar", bar), *((scale.position(v).item() * (bar_width - 1), _tick_text(v))
-                             for v in scale.ticks())]
-    return with_key(picture, _bar_key(items, scale.label, text))
+    bar = _colours_at(np.linspace(0.0, 1.0, bar_width))
+    ticks = [(scale.position(v).item() * (bar_width - 1), _tick_text(v)) for v in scale.ticks()]
+    return with_key(picture, _bar_key(bar, ticks, scale.label, text))
 
 
-def _bar_values(scale: ColourScale, width: int) -> np.ndarray:
-    t = np.linspace(0.0, 1.0, width)
-    if scale.log:
-        return 10.0 ** (np.log10(scale.lo) + t * (np.log10(scale.hi) - np.log10(scale.lo)))
-    return scale.lo + t * (scale.hi - scale.lo)
-
-
-def _bar_key(items, label: str, text: int):
-    """The drawing of a colour bar key: (width, height, draw(buf, x0, y0))."""
+def _bar_key(bar: np.ndarray, ticks, label: str, text: int):
+    """The drawing of a colour bar key: (width, height, draw(buf, x0, y0));
+    ``ticks`` are (position along the bar in pixels, text)."""
     import OpenImageIO as oiio
 
-    bar = items[0][1]
     height = 4 * text + text // 2
     label_width = oiio.ImageBufAlgo.text_size(label, text, FONT).width
 
@@ -274,7 +270,7 @@ def _bar_key(items, label: str, text: int):
         strip = np.repeat(bar[None], text, axis=0)
         start = x0 + text  # room for half a tick label at the bar's left end
         buf.set_pixels(oiio.ROI(start, start + bar.shape[0], y0, y0 + text, 0, 1, 0, 3), strip)
-        for x, words in items[1:]:
+        for x, words in ticks:
             oiio.ImageBufAlgo.render_text(buf, int(start + x), y0 + 2 * text + text // 4, words,
                                           text, FONT, (0.0, 0.0, 0.0), alignx="center")
         oiio.ImageBufAlgo.render_text(buf, x0, y0 + 4 * text, label, text, FONT,
@@ -290,15 +286,14 @@ def legend(entries, width: int):
 
     text = _key_text_px(width)
     row_height = text + text // 2
-    placed, x, y = [], 0, 0
+    placed, x, y, used = [], 0, 0, 0
     for colour, label in entries:
-        item = 2 * text + oiio.ImageBufAlgo.text_size(label, text, FONT).width + text
-        if x and x + item > max(width, 16 * text):
+        drawn = 2 * text + oiio.ImageBufAlgo.text_size(label, text, FONT).width
+        if x and x + drawn + text > max(width, 16 * text):
             x, y = 0, y + row_height
         placed.append((x, y, colour, label))
-        x += item
-    used = max(px + 2 * text + oiio.ImageBufAlgo.text_size(lb, text, FONT).width
-               for px, _, _, lb in placed)
+        used = max(used, x + drawn)
+        x += drawn + text
 
     def draw(buf, x0, y0):
         for px, py, colour, label in placed:
@@ -339,10 +334,15 @@ def dropped_picture(count) -> np.ndarray:
     return table[np.minimum(np.asarray(count), 255)]
 
 
+def dropped_entries() -> list[tuple[tuple[int, int, int], str]]:
+    """(colour, label) of each count :func:`dropped_picture` draws."""
+    names = ("1 light dropped", "2 lights dropped", "3 or more dropped")
+    return [((0, 0, 0), "none dropped"), *zip(DROPPED_COLOURS, names)]
+
+
 def dropped_legend(width: int):
     """The legend of :func:`dropped_picture` (see :func:`legend`)."""
-    names = ("1 light dropped", "2 lights dropped", "3 or more dropped")
-    return legend([((0, 0, 0), "none dropped"), *zip(DROPPED_COLOURS, names)], width)
+    return legend(dropped_entries(), width)
 
 
 def reason_legend(width: int):

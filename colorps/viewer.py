@@ -53,10 +53,10 @@ from .codes import code_range, encode
 from .errors import InputError
 from .figures import (
     COLOUR_MAP_STOPS,
-    DROPPED_COLOURS,
     QUALITY_SCALE,
     UNCERTAINTY_SCALE,
     as_rgb,
+    dropped_entries,
 )
 from .io import write_image
 from .reasons import Reason
@@ -196,7 +196,8 @@ def _index(result: Reconstruction, steps, ranges, band_names, title, finish) -> 
         "colour_map": COLOUR_MAP_STOPS,
         "scales": {"quality": scale(QUALITY_SCALE), "uncertainty": scale(UNCERTAINTY_SCALE)},
         "reasons": [{"code": int(r), "label": r.label, "colour": r.colour} for r in Reason],
-        "dropped_colours": DROPPED_COLOURS,
+        "dropped": [{"colour": colour, "label": label}
+                    for colour, label in dropped_entries()],
         "solved": int(result.stats.solved), "mode": result.stats.mode,
     }
 
