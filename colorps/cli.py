@@ -19,9 +19,9 @@ from .errors import ColorPSError, InputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 from .inputs import CaptureFiles
 from .memory import AUTO_MEMORY_FRACTION
-from .options import FLOAT_DARK_LEVEL, Options
+from .options import FLOAT_DARK_LEVEL, NORMAL_CONVENTIONS, Options
 from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
-from .relight import RELIT_FORMATS
+from .relight import FINISHES, RELIT_FORMATS
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
 __all__ = ["build_parser", "main"]
@@ -205,7 +205,7 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                         help="skip the height map, relief and overview pictures")
     parser.add_argument("--mesh", choices=("ply", "obj", "both"), default=_DEFAULTS.mesh,
                         help="also write a mesh of the height field with albedo colours")
-    parser.add_argument("--normal-convention", choices=("opengl", "directx"),
+    parser.add_argument("--normal-convention", choices=NORMAL_CONVENTIONS,
                         default=_DEFAULTS.normal_convention,
                         help="normal.png's green channel: y up (OpenGL, Blender, Unity) or "
                              "y down (DirectX, Unreal); normal.exr is always y up")
@@ -300,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--overwrite", action="store_true", help="replace an existing file")
 
     rel = sub.add_parser("relight", formatter_class=_FORMATTER,
-                         help="render a results folder under new lights (Lambertian)")
+                         help="render a results folder under new lights")
     rel.add_argument("results", metavar="RESULTS", help="a results folder (normal.exr, "
                      "albedo.exr)")
     rel.add_argument("--lights", required=True, metavar="FILE",
@@ -311,7 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="folder for relit_001, relit_002, ...")
     rel.add_argument("--format", choices=RELIT_FORMATS, default="png",
                      help="8-bit sRGB PNG or linear float EXR")
-    rel.add_argument("--finish", choices=("lambert", "fitted"), default="lambert",
+    rel.add_argument("--finish", choices=FINISHES, default=FINISHES[0],
                      help="Lambertian, or the finish a --lights run fitted (report.json)")
     rel.add_argument("--overwrite", action="store_true", help="replace existing images")
 

@@ -21,10 +21,12 @@ from .io import read_image, srgb_encode, write_image
 from .lights import read_lights
 from .outputs import write_folder
 
-__all__ = ["RELIT_FORMATS", "relight", "relight_files"]
+__all__ = ["FINISHES", "RELIT_FORMATS", "relight", "relight_files"]
 
 #: File formats of relit images: 8-bit sRGB PNG, or linear float EXR.
 RELIT_FORMATS = ("png", "exr")
+#: Finishes relit images are shaded with: Lambertian, or the one a run fitted.
+FINISHES = ("lambert", "fitted")
 
 
 def relight(normals, albedo, direction, intensity=1.0, brdf: BRDF | None = None
@@ -109,8 +111,8 @@ def relight_files(results, lights, out, *, intensities=None,
     if normals.shape[-1] != 3 or albedo.shape[:2] != normals.shape[:2]:
         raise InputError(f"{folder}: normal.exr and albedo.exr do not form one result "
                          f"(shapes {normals.shape} and {albedo.shape})")
-    if finish not in ("lambert", "fitted"):
-        raise InputError(f"finish: expected 'lambert' or 'fitted', got {finish!r}")
+    if finish not in FINISHES:
+        raise InputError(f"finish: expected one of {FINISHES}, got {finish!r}")
     brdf = _fitted_finish(folder) if finish == "fitted" else None
     light_set = read_lights(lights, intensities)
     c = albedo.shape[-1]
