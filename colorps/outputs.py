@@ -275,6 +275,10 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
     hidden folder inside it, on its file system, and moved in one by one.
     On any failure nothing is left behind: not the new folder, not the
     parents made for it, and an existing ``out`` is untouched.
+
+    Each writer writes the file of its name and may write others beside it
+    (the viewer's page writes its data folder): whatever the writers leave is
+    moved. Returns those paths.
     """
     out = out.absolute()
     inside = out.is_dir() and _in_place(out)
@@ -288,8 +292,9 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
         try:
             with interrupts_kept():  # (the mesh writer, trimesh, can swallow a Ctrl-C)
                 _run_writers(writers, tmp, out, progress)
+            written = sorted(os.listdir(tmp))  # a writer may add beside its file
             if inside:
-                for name in writers:
+                for name in written:
                     _replace(tmp / name, out / name)
             elif not out.exists():
                 os.chmod(tmp, file_mode(directory=True))
@@ -305,7 +310,7 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
             with contextlib.suppress(OSError):
                 folder.rmdir()
         raise
-    return [out / name for name in writers]
+    return [out / name for name in written]
 
 
 def _run_writers(writers: dict, tmp: Path, out: Path, progress: bool) -> None:
@@ -499,18 +504,15 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
             p, overview(preview, result.normals, result.albedo, final().height, title=title))
         for kind in exports.mesh:
             writers[MESH_FILES[kind]] = lambda p: _write_mesh(final().height, result.albedo, p)
-    if exports.viewer:
-        # One call writes the page and its data folder; "viewer" is listed so
-        # that it is moved into place with the rest.
+    if exports.viewer:  # the page, and its data folder beside it
         finish = (report or {}).get("brdf")  # a --lights run's fitted finish
         writers["index.html"] = lambda p: write_viewer(final(), p.parent,
                                                        band_names=channel_names, title=title,
                                                        finish=finish)
-        writers["viewer"] = lambda p: None
-    about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS,
-             "files": [*list(writers), "report.json"]}
+    about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS}
 
     def report_json(p):
+        about["files"] = [*sorted(os.listdir(p.parent)), "report.json"]  # all before it
         if final().height is not None:
             lo, hi = _height_range(final().height)
             exported["height.png"] = {"unit": "pixels", "lo": lo, "hi": hi,

@@ -45,6 +45,7 @@ def test_reconstruct_writes_every_output(sample, tmp_path):
     assert report["options"]["mode"] == "colour" and report["statistics"]["grid_n"] > 1
     assert read_image(out / "normal.png", "linear")[0].shape == (64, 64, 3)
     assert sorted(p.name for p in (out / "viewer").iterdir()) == ["level0.js"]
+    assert sorted(report["files"]) == sorted(p.name for p in out.iterdir())  # what is there
 
 
 def test_auto_sphere_mono_and_options(sample, tmp_path):
