@@ -52,7 +52,7 @@ SCENES = {
         lights=lambda: synth.ring_lights(8, 60), noise=0.002, relief=0.2,
         render=dict(cast_shadows=True)),
     "highlights, noise 0.002": dict(lights=lambda: synth.ring_lights(8, 45), noise=0.002,
-                                    render=dict(gloss=0.5, shininess=60),
+                                    render=dict(gloss=0.5),
                                     gauge_render={}),
     "8-bit sRGB, 12 lights, noise 0.003, shadows": dict(
         lights=lambda: synth.ring_lights(12, 50), noise=0.003, relief=0.2, bits=8,

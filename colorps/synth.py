@@ -9,13 +9,14 @@ direction (pointing from the surface towards the light) and a colour (one
 intensity per band), so an image may be lit by one white light, one coloured
 light, or several lights of different colours at once.
 
-BRDFs: ``"lambert"`` and ``"oren-nayar"`` (the qualitative Oren-Nayar model, a
-broad rough-diffuse lobe). Both are the albedo of the band times one fixed
-shape, as gauge-based photometric stereo requires. Attached shadows are
-modelled (cos < 0 gives 0); cast shadows of the relief and a glossy highlight
-the gauge does not share can be added (``render(cast_shadows=True, gloss=...)``),
-with ground truth of which light they affect (:func:`shadow_maps`,
-:func:`highlight_maps`). Interreflections are not modelled.
+BRDFs (:mod:`colorps.finishes`): ``"lambert"`` and ``"oren-nayar"`` (the
+qualitative Oren-Nayar model, a broad rough-diffuse lobe). Both are the albedo
+of the band times one fixed shape, as gauge-based photometric stereo requires.
+Attached shadows are modelled (cos < 0 gives 0); cast shadows of the relief, a
+white highlight (Blinn-Phong, or the GGX microfacet lobe of physically based
+renderers: ``render(cast_shadows=True, gloss=Gloss(...))``) and a one-bounce
+interreflection can be added, with ground truth of which light the first two
+affect (:func:`shadow_maps`, :func:`highlight_maps`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Literal
 import numpy as np
 
 from .errors import InputError
+from .finishes import Gloss, gloss_shape, oren_nayar
 from .geometry import sphere_normals
 
 __all__ = [
@@ -136,31 +138,15 @@ def ring_lights(m: int, theta_deg: float, colours=None, *, bands: int = 3,
 
 def _shade(normals: np.ndarray, light: np.ndarray, brdf: str, roughness: float) -> np.ndarray:
     """BRDF shape times cosine for one light, view along +z (values >= 0)."""
-    cos_i = normals @ light
-    lit = np.maximum(cos_i, 0.0)
     if brdf == "lambert":
-        return lit
-    s2 = roughness ** 2
-    a = 1.0 - 0.5 * s2 / (s2 + 0.33)
-    b = 0.45 * s2 / (s2 + 0.09)
-    cos_r = np.clip(normals[..., 2], 0.0, 1.0)
-    theta_i = np.arccos(np.clip(cos_i, -1.0, 1.0))
-    theta_r = np.arccos(cos_r)
-    alpha = np.maximum(theta_i, theta_r)
-    beta = np.minimum(theta_i, theta_r)
-    # cos of the azimuth difference: light and view projected on the tangent plane.
-    lt = light - cos_i[..., None] * normals
-    vt = np.array([0.0, 0.0, 1.0]) - cos_r[..., None] * normals
-    norm = np.linalg.norm(lt, axis=-1) * np.linalg.norm(vt, axis=-1)
-    cos_phi = np.where(norm > 1e-12, (lt * vt).sum(-1) / np.maximum(norm, 1e-12), 0.0)
-    return lit * (a + b * np.maximum(cos_phi, 0.0) * np.sin(alpha) * np.tan(beta))
+        return np.maximum(normals @ light, 0.0)
+    return oren_nayar(normals, light, roughness)
 
 
 def render(surface: SyntheticSurface, lighting: Lighting, *,
            brdf: Literal["lambert", "oren-nayar"] = "lambert", roughness: float = 0.5,
            noise: float = 0.0, seed: int | None = 0, cast_shadows: bool = False,
-           gloss: float = 0.0, shininess: float = 60.0,
-           interreflection: float = 0.0) -> np.ndarray:
+           gloss: float | Gloss = 0.0, interreflection: float = 0.0) -> np.ndarray:
     """Render an image stack of a surface.
 
     Parameters
@@ -179,10 +165,11 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
     cast_shadows : bool, optional
         Lights blocked by the relief itself (:func:`shadow_maps`) do not
         reach a pixel.
-    gloss, shininess : float, optional
-        A white Blinn-Phong highlight ``gloss (n . h)^shininess`` (h halfway
-        between light and view) added to the diffuse shading: a finish the
-        matte gauge does not share (:func:`highlight_maps`).
+    gloss : float or Gloss, optional
+        A white highlight added to the diffuse shading (a dielectric coat,
+        :class:`colorps.finishes.Gloss`; a number is the peak of a Blinn-Phong
+        highlight of shininess 60): a finish a matte gauge does not share
+        (:func:`highlight_maps`).
     interreflection : float, optional
         Strength of a one-bounce interreflection (0: none; 1: the surface's own
         albedo): each pixel also receives the light its surroundings reflect,
@@ -207,13 +194,14 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
     n = surface.normals[surface.mask]
     alb = surface.albedo[surface.mask]
     blocked = shadow_maps(surface, lighting) if cast_shadows else None
+    gloss = gloss if isinstance(gloss, Gloss) else Gloss(float(gloss))
     for k in range(m):
         value = np.zeros_like(alb)
         for index, (light, colour) in enumerate(zip(lighting.directions[k],
                                                     lighting.colours[k])):
             shade = _shade(n, light, brdf, roughness)[:, None] * alb
-            if gloss > 0:
-                shade = shade + _specular(n, light, gloss, shininess)[:, None]
+            if gloss.strength > 0:
+                shade = shade + gloss_shape(n, light, gloss)[:, None]
             if blocked is not None:
                 shade = np.where(blocked[k, index][surface.mask][:, None], 0.0, shade)
             value += shade * colour[None, :]
@@ -264,15 +252,6 @@ def _bounced(surface: SyntheticSurface, direct: np.ndarray) -> np.ndarray:
     return out
 
 
-def _specular(normals: np.ndarray, light: np.ndarray, gloss: float,
-              shininess: float) -> np.ndarray:
-    """Blinn-Phong highlight of one light, view along +z (0 where unlit)."""
-    half = light + np.array([0.0, 0.0, 1.0])
-    half = half / np.linalg.norm(half)
-    lit = normals @ light > 0
-    return np.where(lit, gloss * np.clip(normals @ half, 0.0, 1.0) ** shininess, 0.0)
-
-
 def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:
     """Where the relief casts a shadow: (m, L, H, W) bool, per image and light.
 
@@ -314,14 +293,15 @@ def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:
     return out
 
 
-def highlight_maps(surface: SyntheticSurface, lighting: Lighting, *, gloss: float,
-                   shininess: float = 60.0, level: float = 0.01) -> np.ndarray:
+def highlight_maps(surface: SyntheticSurface, lighting: Lighting, *, gloss: float | Gloss,
+                   level: float = 0.01) -> np.ndarray:
     """Where the highlight of :func:`render` adds more than ``level``: (m, L, H, W)."""
+    gloss = gloss if isinstance(gloss, Gloss) else Gloss(float(gloss))
     out = np.zeros(lighting.directions.shape[:2] + surface.mask.shape, dtype=bool)
     n = surface.normals[surface.mask]
     for k in range(lighting.images):
         for index, light in enumerate(lighting.directions[k]):
-            out[k, index][surface.mask] = _specular(n, light, gloss, shininess) > level
+            out[k, index][surface.mask] = gloss_shape(n, light, gloss) > level
     return out
 
 

@@ -20,7 +20,7 @@ MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct
            "colorps.io", "colorps.formats", "colorps.inputs", "colorps.hygiene", "colorps.pairing", "colorps.outputs", "colorps.pipeline",
            "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.codes",
            "colorps.viewer", "colorps.relight", "colorps.mesh",
-           "colorps.synth", "colorps.shapes", "colorps.sample", "colorps.errors",
+           "colorps.synth", "colorps.finishes", "colorps.shapes", "colorps.sample", "colorps.errors",
            "colorps.cli")
 HERE = Path(__file__).resolve().parent
 

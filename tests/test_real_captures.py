@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from colorps import Gauge, GaugeError, angular_error, find_sphere, reconstruct, synth
+from colorps.finishes import Gloss
 from colorps.matching import band_snr, weight_levels
 from colorps.tables import Capture
 from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
@@ -159,9 +160,9 @@ def test_cast_shadows_of_the_relief_solved_with_the_light_identified():
 def test_highlights_the_gauge_lacks_are_dropped_as_brighter():
     lights = synth.ring_lights(8, 45)
     scene = synth.smiley_surface(140, coloured=False)
-    stack = synth.render(scene, lights, gloss=0.6, shininess=80, noise=0.002, seed=1)
+    stack = synth.render(scene, lights, gloss=Gloss(0.6, shininess=80), noise=0.002, seed=1)
     gauge_stack, gauge = gauge_for(lights, noise=0.002)
-    spots = synth.highlight_maps(scene, lights, gloss=0.6, shininess=80, level=0.05)[:, 0]
+    spots = synth.highlight_maps(scene, lights, gloss=Gloss(0.6, shininess=80), level=0.05)[:, 0]
     one = (spots.sum(axis=0) == 1) & scene.mask
     assert one.sum() > 100
     result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
