@@ -63,7 +63,7 @@ NoiseTables = namedtuple("NoiseTables", "noise levels table")
 #: Outputs, one per pixel: the gauge pixel the fit ended at (y, x) and the
 #: offset (u, v) from it, the unit normal (P, 3), the normal's angular variance
 #: cov (radians^2), and ok, whether it was refined.
-Refined = namedtuple("Refined", "y x u v normal cov ok")
+Refined = namedtuple("Refined", "y x u v normal cov fit ok")
 
 
 def quadratic_fit_matrix(half: int) -> np.ndarray:
@@ -89,9 +89,11 @@ def _eval(coef, y, x, j, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights, u, v):
+def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u, v):
     """STEPS Gauss-Newton steps from (u, v) inside the neighbourhood; returns the
-    offset and the normal equations' matrix (h00, h01, h11) at it."""
+    offset and the normal equations' matrix (h00, h01, h11) at it. Each
+    measurement's weight is times its robust factor, which each step sets to
+    min(1, limit / |residual in noise units|) for the next (Huber)."""
     h00 = h01 = h11 = 0.0
     for _ in range(STEPS):
         h00 = 0.0
@@ -103,7 +105,7 @@ def _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights, u, v):
             sg = 0.0
             gg = 0.0
             for i in range(n_lights):
-                wt = weights[k, i]
+                wt = weights[k, i] * robust[k, i]
                 if wt > 0.0:
                     g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
                     sg += wt * obs[k, i] * g
@@ -112,10 +114,12 @@ def _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights, u, v):
                 continue
             a = sg / gg
             for i in range(n_lights):
-                wt = weights[k, i]
+                wt = weights[k, i] * robust[k, i]
                 if wt > 0.0:
                     g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
                     r = obs[k, i] - a * g
+                    z = abs(r) * np.sqrt(weights[k, i])
+                    robust[k, i] = min(1.0, limit / z) if z > 0.0 else 1.0
                     ju = a * gu
                     jv = a * gv
                     h00 += wt * ju * ju
@@ -132,6 +136,46 @@ def _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights, u, v):
         u = min(max(u + (a11 * g0 - h01 * g1) / det, -1.0), 1.0)
         v = min(max(v + (a00 * g1 - h01 * g0) / det, -1.0), 1.0)
     return u, v, h00, h01, h11
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _meat(coef, y, x, obs, weights, n_bands, n_lights, u, v):
+    """The measured residuals' spread along the Jacobian at (u, v), the middle
+    of the sandwich covariance: sum (w r)^2 J J^T (m00, m01, m11) over the
+    measurements the fit used, at their noise weights w (not down-weighted:
+    a measurement the gauge does not explain counts in full), times n / (n - p)
+    for the n measurements and p fitted values (the offset and a scale per band)."""
+    m00 = m01 = m11 = 0.0
+    count = 0
+    scales = 0
+    for k in range(n_bands):
+        sg = 0.0
+        gg = 0.0
+        for i in range(n_lights):
+            wt = weights[k, i]
+            if wt > 0.0:
+                g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
+                sg += wt * obs[k, i] * g
+                gg += wt * g * g
+        if gg <= 0.0:
+            continue
+        scales += 1
+        a = sg / gg
+        for i in range(n_lights):
+            wt = weights[k, i]
+            if wt > 0.0:
+                g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
+                r = obs[k, i] - a * g
+                spread = (wt * r) ** 2
+                m00 += spread * a * gu * a * gu
+                m01 += spread * a * gu * a * gv
+                m11 += spread * a * gv * a * gv
+                count += 1
+    free = count - scales - 2
+    if free <= 0:
+        return 0.0, 0.0, 0.0, False
+    scale = count / free
+    return scale * m00, scale * m01, scale * m11, True
 
 
 @njit(cache=True, inline="always")
@@ -174,9 +218,10 @@ def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, levels, ta
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, out_u, out_v,
-                  out_normal, out_cov, out_ok):
+def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, out_y, out_x,
+                  out_u, out_v, out_normal, out_cov, out_fit, out_ok):
     n_bands, n_lights = obs.shape
+    robust[:] = 1.0
     y, x = qy[p], qx[p]
     out_ok[p] = False
     if window[y, x] == 0:
@@ -185,8 +230,8 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, ou
     v = 0.0
     h00 = h01 = h11 = 0.0
     for move in range(MAX_MOVES + 1):
-        u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, n_bands, n_lights,
-                                            u, v)
+        u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, robust, limit,
+                                            n_bands, n_lights, u, v)
         step_x = 1 if u >= 1.0 else -1 if u <= -1.0 else 0
         step_y = 1 if v >= 1.0 else -1 if v <= -1.0 else 0
         if (step_x == 0 and step_y == 0) or move == MAX_MOVES or \
@@ -221,11 +266,19 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, ou
     tuv = (nxu * nxv + nyu * nyv + nzu * nzv) / (norm * norm)
     tv = (nxv * nxv + nyv * nyv + nzv * nzv) / (norm * norm)
     out_cov[p] = c00 * tu + 2.0 * c01 * tuv + c11 * tv
+    # The sandwich C M C, M the measured residuals' spread: the covariance the
+    # residuals show, whatever their cause.
+    m00, m01, m11, used = _meat(coef, y, x, obs, weights, n_bands, n_lights, u, v)
+    if used:
+        s00 = c00 * c00 * m00 + 2.0 * c00 * c01 * m01 + c01 * c01 * m11
+        s01 = c00 * c01 * m00 + (c00 * c11 + c01 * c01) * m01 + c01 * c11 * m11
+        s11 = c01 * c01 * m00 + 2.0 * c01 * c11 * m01 + c11 * c11 * m11
+        out_fit[p] = s00 * tu + 2.0 * s01 * tuv + s11 * tv
     out_ok[p] = True
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def refine(gauge, pixels, noise_tables, out):
+def refine(gauge, pixels, noise_tables, limit, out):
     """Refine every pixel (``prange`` over chunks); see the module docstring.
 
     ``gauge`` is a :data:`GaugeModel`, ``pixels`` the :data:`Pixels` to refine,
@@ -236,15 +289,16 @@ def refine(gauge, pixels, noise_tables, out):
     coef, ncoef, window, gauge_ov = gauge
     scene_ov, py, px, qy, qx, bands, dropped = pixels
     noise, levels, table = noise_tables
-    out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok = out
+    out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok = out
     n = py.shape[0]
     n_bands, n_lights = scene_ov.shape[2], scene_ov.shape[3]
     n_chunks = (n + PIXEL_CHUNK - 1) // PIXEL_CHUNK
     for chunk in prange(n_chunks):
         obs = np.empty((n_bands, n_lights))
         weights = np.empty((n_bands, n_lights))
+        robust = np.empty((n_bands, n_lights))
         for p in range(chunk * PIXEL_CHUNK, min((chunk + 1) * PIXEL_CHUNK, n)):
             _weights(scene_ov, gauge_ov, py[p], px[p], qy[p], qx[p], bands[p], dropped[p],
                      noise, levels, table, obs, weights)
-            _refine_pixel(p, coef, ncoef, window, obs, weights, qy, qx, out_y, out_x, out_u,
-                          out_v, out_normal, out_cov, out_ok)
+            _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, out_y,
+                          out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok)

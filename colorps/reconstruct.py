@@ -131,12 +131,14 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     t0 = time.perf_counter()
     if options.refine != "none" and solved.any():
         refined = _refine(setup.capture, gauge, setup.gauge_sig, matches, solved, options)
-        # The noise's uncertainty, grown by how much worse than the noise the
-        # match explains the pixel (the reduced chi-square's root, its residual):
-        # a pixel the gauge explains poorly is less certain.
+        # The noise's uncertainty or the one the residuals show along the
+        # normal's directions, whichever is larger, grown by how much worse than
+        # the noise the match explains the pixel (the reduced chi-square's root,
+        # its residual): a pixel the gauge explains poorly is less certain.
         misfit = np.maximum(1.0, np.nan_to_num(matches.quality[solved], nan=1.0))
         normals[solved] = refined.normals
-        uncertainty[solved] = refined.uncertainty * misfit
+        uncertainty[solved] = np.fmax(refined.uncertainty,
+                                      refined.measured_uncertainty) * misfit
         offset = refined.offset
     t_refine = time.perf_counter() - t0
     albedo = np.full((*mask.shape, scene.shape[3]), np.nan, dtype=np.float32)

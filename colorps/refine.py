@@ -6,14 +6,19 @@ radius r). :func:`refine_normals` fits, around the matched gauge pixel, a
 quadratic model of every gauge measurement (and of the gauge normal) over its
 5 x 5 neighbourhood (3 x 3 near the rim), and moves to the sub-pixel position whose modelled
 observation vector explains the pixel's best (weighted by the noise model,
-over the bands and lights the match used), by Gauss-Newton. This works for any
-gauge given as normals and a mask, not only for spheres.
+over the bands and lights the match used, measurements far outside the noise
+down-weighted: ROBUST_LIMIT), by Gauss-Newton. This works for any gauge given
+as normals and a mask, not only for spheres.
 
 The **uncertainty** is the radius (degrees) within which the true normal lies
 with 68 % probability under the noise model: the offset's covariance
 (J^T W J)^-1 from the Jacobian of the fit, carried to the normal through the
 normal's derivatives, scaled by the capture's model scale, taken as an
-isotropic 2-D Gaussian (68 % radius = 1.515 sigma per axis).
+isotropic 2-D Gaussian (68 % radius = 1.515 sigma per axis). Beside it, the
+**measured uncertainty** is the same radius from the sandwich covariance
+(J^T W J)^-1 (J^T W diag(r^2) W J) (J^T W J)^-1 of the residuals r the fit
+leaves (times n / (n - p) for the p fitted values), which grows where the
+measurements depart from the gauge along the directions that move the normal.
 """
 
 from __future__ import annotations
@@ -40,6 +45,13 @@ __all__ = [
 MODEL_CHUNK = 4096
 #: Refinement methods of ``Options.refine``.
 REFINE_METHODS = ("quadratic", "none")
+#: Measurements the fit leaves more than this many noise units (times the
+#: capture's model scale) from the gauge's are down-weighted (Huber: weight
+#: limit / residual): a light whose cast shadow is too faint to be found (near
+#: grazing incidence, a few noise units), a trace of a highlight. On deep folds
+#: under 32 lights the normals of pixels with such a shadow went 0.26 -> 0.16
+#: degrees (median), the others' stayed at 0.10; DiLiGenT Ball 1.13 -> 1.12.
+ROBUST_LIMIT = 2.0
 #: For an isotropic 2-D Gaussian with sigma per axis, 68 % of the mass lies
 #: within this many sigma of the centre: sqrt(-2 ln(1 - 0.68)).
 RADIUS_68 = float(np.sqrt(-2.0 * np.log(1.0 - 0.68)))
@@ -54,7 +66,14 @@ class Refinement:
     normals : (P, 3) ndarray of float32
         Refined unit normals (the table's where not refined).
     uncertainty : (P,) ndarray of float32
-        68 % angular radius in degrees (NaN where not refined).
+        68 % angular radius in degrees under the noise model (NaN where not
+        refined).
+    measured_uncertainty : (P,) ndarray of float32
+        The same radius from the residuals the fit leaves (the sandwich
+        covariance C M C, M their spread along the Jacobian): larger where the
+        measurements disagree with the gauge more than the noise would, along
+        the directions that move the normal (NaN where not refined or with no
+        degrees of freedom left).
     offset : (P, 2) ndarray of float32
         Refined position in gauge pixels (columns, rows) relative to the
         matched gauge pixel (up to MAX_MOVES + 1 pixels away).
@@ -64,6 +83,7 @@ class Refinement:
 
     normals: np.ndarray
     uncertainty: np.ndarray
+    measured_uncertainty: np.ndarray
     offset: np.ndarray
     refined: np.ndarray
 
@@ -205,19 +225,23 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
         np.ascontiguousarray(matched.dropped, dtype=np.uint64).reshape(n, -1))
     out = _refine_kernels.Refined(y=qy.copy(), x=qx.copy(), u=np.zeros(n), v=np.zeros(n),
                                   normal=np.zeros((n, 3)), cov=np.full(n, np.nan),
+                                  fit=np.full(n, np.nan),
                                   ok=np.zeros(n, dtype=bool))
     previous = numba.get_num_threads()
     numba.set_num_threads(resolve_threads(threads))
     try:
-        _refine_kernels.refine(gauge, pixels, noise_tables(scene_noise, gauge_noise), out)
+        _refine_kernels.refine(gauge, pixels, noise_tables(scene_noise, gauge_noise),
+                               ROBUST_LIMIT * model_scale, out)
     finally:
         numba.set_num_threads(previous)
-    out_y, out_x, out_u, out_v, out_normal, out_cov, out_ok = out
+    out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok = out
     table_normals = gauge_normals.reshape(-1, 3)[matched.rows]
     normals = np.where(out_ok[:, None], out_normal, table_normals).astype(np.float32)
     sigma = np.sqrt(np.maximum(out_cov / 2.0, 0.0)) * model_scale
     uncertainty = np.where(out_ok, np.degrees(RADIUS_68 * sigma), np.nan).astype(np.float32)
+    measured = np.where(out_ok & np.isfinite(out_fit),
+                        np.degrees(RADIUS_68 * np.sqrt(np.maximum(out_fit / 2.0, 0.0))), np.nan)
     # Offsets relative to the matched pixel (the fit may have moved).
     offset = np.stack([out_x - qx + out_u, out_y - qy + out_v], axis=1)
     offset = np.where(out_ok[:, None], offset, 0.0).astype(np.float32)
-    return Refinement(normals, uncertainty, offset, out_ok)
+    return Refinement(normals, uncertainty, measured.astype(np.float32), offset, out_ok)

@@ -123,3 +123,47 @@ def test_uncertainty_ranks_the_pixels_the_gauge_explains_poorly_worst():
     uncertain = result.uncertainty[ok]
     top = uncertain >= np.percentile(uncertain, 95)
     assert np.mean(error[top] > np.percentile(error, 90)) > 0.5
+
+
+@pytest.fixture(scope="module")
+def folds():
+    """Deep folds under 24 lights with cast shadows: many pixels lose lights near
+    grazing incidence whose shadow is only a few noise units deep."""
+    from colorps.shapes import dome_lights, folds_surface
+
+    lights = dome_lights(24)
+    scene = folds_surface(110)
+    stack = synth.render(scene, lights, cast_shadows=True, noise=0.003, seed=1)
+    ball = synth.sphere_surface(80, 35)
+    gauge_stack = synth.render(ball, lights, noise=0.003, seed=2)
+    blocked = synth.shadow_maps(scene, lights)[:, 0].any(axis=0)
+    return scene, stack, gauge_stack, Gauge.from_sphere((80, 80), 39.5, 39.5, 35), blocked
+
+
+def _folds_errors(folds):
+    scene, stack, gauge_stack, gauge, blocked = folds
+    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, read_noise=0.003, gain=0.0)
+    ok = scene.mask & result.solved & np.isfinite(result.uncertainty)
+    error = angular_error(result.normals[ok], scene.normals[ok])
+    return error, result.uncertainty[ok], blocked[ok]
+
+
+def test_robust_refinement_shrugs_off_faint_shadows(folds, monkeypatch):
+    """The down-weighting of measurements far outside the noise (ROBUST_LIMIT)
+    against the plain least squares fit (an infinite limit), on the same
+    matches: the shadowed pixels' normals are closer, the others' as close."""
+    from colorps import refine
+
+    robust, _, shadowed = _folds_errors(folds)
+    monkeypatch.setattr(refine, "ROBUST_LIMIT", np.inf)
+    plain, _, _ = _folds_errors(folds)
+    assert np.mean(robust[shadowed]) < 0.85 * np.mean(plain[shadowed])
+    assert np.median(robust[~shadowed]) < 1.05 * np.median(plain[~shadowed])
+
+
+def test_uncertainty_calibrated_on_folds_with_cast_shadows(folds):
+    """About 68 % of the true errors within the 68 % radius, shadowed pixels
+    included (55-62 % before the residuals' own spread counted)."""
+    error, uncertainty, shadowed = _folds_errors(folds)
+    assert 0.62 <= np.mean(error <= uncertainty) <= 0.78
+    assert 0.55 <= np.mean(error[shadowed] <= uncertainty[shadowed]) <= 0.85
