@@ -7,21 +7,25 @@ parameters, shared by every pixel (a gauge has one finish) while the albedo
 varies per pixel and band. With the camera along +z, light k of direction l_k
 and intensity E_kb in band b, a pixel of normal n and albedo a_b shows::
 
-    I_kb = E_kb a_b ( g(n . l_k) (n . l_k) + s_b (shininess + 2) / 2 (n . h_k)^shininess (n . l_k) )
+    I_kb = E_kb a_b ( g(n . l_k) R_k(n) (n . l_k) + s_b (shininess + 2) / 2 (n . h_k)^shininess (n . l_k) )
 
 for n . l_k > 0 (0 otherwise: attached shadow), h_k the unit half vector of
 l_k and the view. ``g`` is the diffuse falloff, piecewise linear in the
 cosine of incidence over DIFFUSE_KNOTS with g(1) = 1: g = 1 everywhere is
-Lambert, real matte and plastic finishes are darker at grazing incidence. The
-second term is a normalised Blinn-Phong highlight of strength s_b per band.
+Lambert, real matte and plastic finishes are darker at grazing incidence.
+``R_k`` is the Oren-Nayar factor of a rough surface (roughness sigma, radians;
+:func:`colorps.finishes.oren_nayar_factor`; 1 when sigma is 0), brighter where
+light and view are on the same side: it depends on the view, which g cannot
+follow. The last term is a normalised Blinn-Phong highlight of strength s_b
+per band.
 
-:func:`fit_brdf` fits g, s and shininess to a scene's observations at given
+:func:`fit_brdf` fits g, sigma, s and shininess to a scene's observations at given
 normals (an initial estimate from a Lambertian gauge, then from the fitted one:
 :func:`colorps.virtual.fit_scene_brdf`): alternating least squares between the
 per-pixel albedos and the shared,
 non-negative parameters, on relative residuals with robust (Huber) weights so
-that cast shadows and interreflections do not pull the fit, over a grid of
-shininess values.
+that cast shadows and interreflections do not pull the fit, over grids of
+shininess and roughness values.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
+from .finishes import oren_nayar_factor
 
 __all__ = ["BRDF", "DIFFUSE_KNOTS", "fit_brdf"]
 
@@ -43,6 +48,10 @@ DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 #: around the best; each joint round (below) tries the best and its neighbours.
 SHININESS_GRID = tuple(float(v) for v in np.geomspace(4.0, 10000.0, 10))
 SHININESS_STEPS = 2
+#: Oren-Nayar roughness values (radians; 0: smooth, Lambertian) tried at the
+#: best shininess of each round: every other one in the first round, then the
+#: best and its neighbours.
+ROUGHNESS_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
 #: Observations whose cosine of incidence at the estimated normal is below this
 #: are left out: attached-shadow boundaries are where normal errors matter most.
 MIN_FIT_COSINE = 0.02
@@ -67,7 +76,7 @@ SMOOTHNESS_WEIGHT = 1e-4
 
 @dataclass(frozen=True)
 class BRDF:
-    """A shared isotropic finish: diffuse falloff plus a Blinn-Phong highlight.
+    """A shared isotropic finish: diffuse falloff and roughness, plus a Blinn-Phong highlight.
 
     Attributes
     ----------
@@ -78,6 +87,8 @@ class BRDF:
         one value for all bands; 0: no highlight.
     shininess : float
         Blinn-Phong exponent of the highlight.
+    roughness : float
+        Oren-Nayar sigma of the diffuse term (radians; 0: smooth).
 
     Examples
     --------
@@ -91,6 +102,7 @@ class BRDF:
     falloff: tuple[float, ...] = field(default=tuple(1.0 for _ in DIFFUSE_KNOTS))
     specular: tuple[float, ...] = (0.0,)
     shininess: float = 100.0
+    roughness: float = 0.0
 
     def __post_init__(self) -> None:
         falloff = tuple(float(v) for v in self.falloff)
@@ -98,13 +110,14 @@ class BRDF:
         if len(falloff) != len(DIFFUSE_KNOTS):
             raise InputError(f"brdf: falloff needs {len(DIFFUSE_KNOTS)} values (at "
                              f"cosines {DIFFUSE_KNOTS}), got {len(falloff)}")
-        values = np.array(falloff + specular + (float(self.shininess),))
+        values = np.array(falloff + specular + (float(self.shininess), float(self.roughness)))
         if not np.all(np.isfinite(values)) or np.any(values < 0) or self.shininess <= 0:
             raise InputError(f"brdf: falloff and specular must be finite and >= 0, "
                              f"shininess > 0; got {falloff}, {specular}, {self.shininess}")
         object.__setattr__(self, "falloff", falloff)
         object.__setattr__(self, "specular", specular)
         object.__setattr__(self, "shininess", float(self.shininess))
+        object.__setattr__(self, "roughness", float(self.roughness))
 
     @classmethod
     def lambert(cls) -> BRDF:
@@ -113,7 +126,8 @@ class BRDF:
 
     @property
     def is_lambert(self) -> bool:
-        return all(v == 1.0 for v in self.falloff) and not any(self.specular)
+        return all(v == 1.0 for v in self.falloff) and not any(self.specular) and \
+            self.roughness == 0.0
 
     def shade(self, normals: np.ndarray, directions: np.ndarray,
               intensities: np.ndarray) -> np.ndarray:
@@ -137,6 +151,8 @@ class BRDF:
         intensities = np.asarray(intensities, dtype=np.float64)
         cosine, cos_half = _angles(normals, directions)
         diffuse = cosine * np.interp(cosine, DIFFUSE_KNOTS, self.falloff)
+        if self.roughness:
+            diffuse = diffuse * oren_nayar_factor(normals, directions, self.roughness)
         specular = np.broadcast_to(self.specular, (intensities.shape[1],)) \
             if len(self.specular) == 1 else np.array(self.specular)
         if len(specular) != intensities.shape[1]:
@@ -148,9 +164,10 @@ class BRDF:
         return value * intensities[:, None, :]
 
     def as_dict(self) -> dict:
-        return dict(model="diffuse falloff + Blinn-Phong", falloff_knots=list(DIFFUSE_KNOTS),
-                    falloff=list(self.falloff), specular=list(self.specular),
-                    shininess=self.shininess)
+        return dict(model="diffuse falloff x Oren-Nayar + Blinn-Phong",
+                    falloff_knots=list(DIFFUSE_KNOTS), falloff=list(self.falloff),
+                    specular=list(self.specular), shininess=self.shininess,
+                    roughness=self.roughness)
 
     @classmethod
     def from_dict(cls, record: dict) -> BRDF:
@@ -159,7 +176,13 @@ class BRDF:
             raise InputError("brdf: its falloff is given at knots other than this "
                              f"colorps's {DIFFUSE_KNOTS}")
         return cls(tuple(record["falloff"]), tuple(record["specular"]),
-                   float(record["shininess"]))
+                   float(record["shininess"]), float(record.get("roughness", 0.0)))
+
+
+def _neighbours(values: tuple[float, ...], value: float) -> tuple[float, ...]:
+    """``value`` and its neighbours in the sorted ``values``."""
+    at = values.index(value)
+    return values[max(at - 1, 0):at + 2]
 
 
 def _half_vectors(directions: np.ndarray) -> np.ndarray:
@@ -230,31 +253,37 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     grid = SHININESS_GRID
     step = np.log(SHININESS_GRID[1] / SHININESS_GRID[0])
     brdf = BRDF.lambert()  # round 0 fits at the given normals; later rounds refine them
+    roughness_grid = ROUGHNESS_GRID[::2]  # every other value first, then neighbours
     for round_ in range(1 + JOINT_ROUNDS):
         if round_:
             normals = _refine_normals(obs, base_weight, normals, brdf, directions)
         cosine, cos_half = _angles(normals, directions)  # one round's normals
-        diffuse_basis = _hats(cosine)  # (m, N, K)
+        hats = _hats(cosine)  # (m, N, K)
         fits = {}
 
-        def fit_at(shininess, fits=fits, basis=diffuse_basis, cosine=cosine,
-                   cos_half=cos_half):  # this round's normals, bound now
-            if shininess not in fits:
-                fits[shininess] = _fit_at(obs, base_weight, basis,
-                                          _lobe(cosine, cos_half, shininess))
-            return fits[shininess][2]
+        def fit_at(shininess, roughness, fits=fits, hats=hats, cosine=cosine,
+                   cos_half=cos_half, normals=normals):  # this round's normals, bound now
+            if (shininess, roughness) not in fits:
+                basis = hats if roughness == 0.0 else \
+                    hats * oren_nayar_factor(normals, directions, roughness)[..., None]
+                fits[shininess, roughness] = _fit_at(obs, base_weight, basis,
+                                                     _lobe(cosine, cos_half, shininess))
+            return fits[shininess, roughness][2]
 
-        shininess = min(grid, key=fit_at)
+        roughness = brdf.roughness
+        shininess = min(grid, key=lambda v: fit_at(v, roughness))
         for _ in range(SHININESS_STEPS if round_ == 0 else 0):
             step /= 2.0
             shininess = min((shininess * np.exp(-step), shininess, shininess * np.exp(step)),
-                            key=fit_at)
+                            key=lambda v: fit_at(v, roughness))
+        roughness = min(roughness_grid, key=lambda v: fit_at(shininess, v))
         # Later rounds try this round's best and its neighbours at the last step.
         grid = (shininess * np.exp(-step), shininess, shininess * np.exp(step))
-        falloff, specular, cost = fits[shininess]
-        brdf = BRDF(tuple(falloff), tuple(specular), shininess)
+        roughness_grid = _neighbours(ROUGHNESS_GRID, roughness)
+        falloff, specular, cost = fits[shininess, roughness]
+        brdf = BRDF(tuple(falloff), tuple(specular), shininess, roughness)
     if not np.any(brdf.specular):
-        brdf = BRDF(brdf.falloff, brdf.specular)
+        brdf = BRDF(brdf.falloff, brdf.specular, roughness=brdf.roughness)
     return brdf, float(np.sqrt(cost))
 
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["GLOSS_MODELS", "Gloss", "gloss_shape", "oren_nayar"]
+__all__ = ["GLOSS_MODELS", "Gloss", "gloss_shape", "oren_nayar", "oren_nayar_factor"]
 
 #: Names of the highlight models :class:`Gloss` knows.
 GLOSS_MODELS = ("blinn-phong", "ggx")
@@ -75,24 +75,37 @@ class Gloss:
                              f"please; got {self.strength}, {self.shininess}, {self.alpha}")
 
 
-def oren_nayar(normals: np.ndarray, light: np.ndarray, sigma: float) -> np.ndarray:
-    """(N,) Oren-Nayar (qualitative model) shape times the cosine, view along +z."""
-    cos_i = normals @ light
-    lit = np.maximum(cos_i, 0.0)
+def oren_nayar_factor(normals: np.ndarray, directions: np.ndarray, sigma: float) -> np.ndarray:
+    """(m, N) Oren-Nayar factor ``A + B max(0, cos dphi) sin(alpha) tan(beta)`` of
+    N unit normals under m light directions, view along +z (1 everywhere when
+    sigma is 0: Lambert). Multiply by the cosine of incidence for the shading."""
+    normals = np.asarray(normals, dtype=np.float64)
+    directions = np.atleast_2d(np.asarray(directions, dtype=np.float64))
     s2 = sigma ** 2
     a = 1.0 - 0.5 * s2 / (s2 + 0.33)
     b = 0.45 * s2 / (s2 + 0.09)
-    cos_r = np.clip(normals[..., 2], 0.0, 1.0)
-    theta_i = np.arccos(np.clip(cos_i, -1.0, 1.0))
+    if b == 0.0:
+        return np.full((len(directions), len(normals)), a)
+    cos_i = np.clip(directions @ normals.T, -1.0, 1.0)  # (m, N)
+    cos_r = np.clip(normals[:, 2], 0.0, 1.0)  # (N,)
+    theta_i = np.arccos(cos_i)
     theta_r = np.arccos(cos_r)
     larger = np.maximum(theta_i, theta_r)
     smaller = np.minimum(theta_i, theta_r)
     # cos of the azimuth difference: light and view projected on the tangent plane.
-    lt = light - cos_i[..., None] * normals
-    vt = VIEW - cos_r[..., None] * normals
-    norm = np.linalg.norm(lt, axis=-1) * np.linalg.norm(vt, axis=-1)
-    cos_phi = np.where(norm > 1e-12, (lt * vt).sum(-1) / np.maximum(norm, 1e-12), 0.0)
-    return lit * (a + b * np.maximum(cos_phi, 0.0) * np.sin(larger) * np.tan(smaller))
+    view_t = VIEW - cos_r[:, None] * normals  # (N, 3)
+    light_dot_view_t = directions @ view_t.T  # l . (v - (n.v) n) = l.v - (n.v)(n.l)
+    light_t_norm = np.sqrt(np.maximum(1.0 - cos_i ** 2, 0.0))
+    view_t_norm = np.sqrt(np.maximum(1.0 - cos_r ** 2, 0.0))
+    norm = light_t_norm * view_t_norm
+    cos_phi = np.where(norm > 1e-12, light_dot_view_t / np.maximum(norm, 1e-12), 0.0)
+    return a + b * np.maximum(cos_phi, 0.0) * np.sin(larger) * np.tan(smaller)
+
+
+def oren_nayar(normals: np.ndarray, light: np.ndarray, sigma: float) -> np.ndarray:
+    """(N,) Oren-Nayar (qualitative model) shape times the cosine, view along +z."""
+    lit = np.maximum(normals @ light, 0.0)
+    return lit * oren_nayar_factor(normals, light, sigma)[0]
 
 
 def gloss_shape(normals: np.ndarray, light: np.ndarray, gloss: Gloss) -> np.ndarray:

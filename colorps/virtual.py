@@ -109,7 +109,8 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
     :class:`BRDF` is fitted (:func:`fit_brdf`) to FIT_PIXELS of its solved
     pixels at their estimated normals, the gauge is rendered with it, and the
     scene matched again; ``fits`` times in all. The fit is kept only when the
-    scene matches the gauge rendered with it better (lower median residual)
+    scene matches the gauge rendered with it better (lower median residual in
+    noise units, before the run's model scale)
     than the Lambertian one (the last round's ``kept``); otherwise the result is
     Lambert, as it is with fewer than MIN_FIT_IMAGES images (with a warning).
 
@@ -168,11 +169,11 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
     if not kept:
         if fitted > (1.0 + WORSE_FIT) * start:
             warnings.warn(f"brdf: the fitted finish matched the scene worse than a "
-                          f"Lambertian one (median residual {fitted:.2f} vs {start:.2f}); "
+                          f"Lambertian one (median residual {fitted:.2f} vs {start:.2f} noise units); "
                           "the virtual gauge is Lambertian", ColorPSWarning, stacklevel=2)
         elif progress:
             print(f"brdf: the fitted finish matched the scene no better than a Lambertian "
-                  f"one (median residual {fitted:.2f} vs {start:.2f}): dropped, the virtual "
+                  f"one (median residual {fitted:.2f} vs {start:.2f} noise units): dropped, the virtual "
                   "gauge is Lambertian", file=sys.stderr)
         return BRDF.lambert(), history
     return brdf, history

@@ -60,6 +60,24 @@ def test_fit_recovers_a_known_finish(lights):
     assert 150 <= fitted.shininess <= 600  # the grid's neighbours of 300
 
 
+def test_fit_recovers_a_rough_finish(lights):
+    """An Oren-Nayar surface (sigma 0.3, rendered by colorps.finishes) at its true
+    normals: the fit finds its roughness and leaves the falloff at Lambert."""
+    from colorps.finishes import oren_nayar
+
+    ball = synth.sphere_surface(61, 28, bands=3)
+    normals = ball.normals[ball.mask]
+    albedo = np.random.default_rng(2).uniform(0.3, 0.9, (len(normals), 3))
+    shape = np.stack([oren_nayar(normals, d, 0.3) for d in lights.directions])
+    observed = shape[..., None] * lights.intensities[:, None, :] * albedo[None]
+    fitted, rms = fit_brdf(observed, normals, lights.directions, lights.intensities,
+                           observed > 1e-6)
+    assert fitted.roughness == 0.3 and rms < 1e-3
+    np.testing.assert_allclose(fitted.falloff[1:], 1.0, atol=0.02)
+    assert max(fitted.specular) < 1e-3
+    assert BRDF.from_dict(fitted.as_dict()) == fitted
+
+
 def test_fit_of_a_matte_finish_is_lambert(lights):
     ball = synth.sphere_surface(41, 18, bands=3)
     observed = BRDF.lambert().shade(ball.normals[ball.mask], lights.directions,
@@ -68,7 +86,7 @@ def test_fit_of_a_matte_finish_is_lambert(lights):
                            lights.intensities, observed > 1e-6)
     assert rms < 1e-3
     np.testing.assert_allclose(fitted.falloff[1:], 1.0, atol=0.01)
-    assert max(fitted.specular) < 1e-3
+    assert max(fitted.specular) < 1e-3 and fitted.roughness == 0.0
 
 
 def test_fitted_virtual_gauge_beats_lambert_on_a_glossy_scene(lights):
