@@ -64,8 +64,11 @@ JOINT_ROUNDS = 4
 NORMAL_STEPS = 5
 MAX_NORMAL_STEP = 0.1
 NORMAL_EPS = 1e-4
-#: Alternating least-squares rounds per shininess value.
+#: Alternating least-squares rounds per shininess value, at most: they stop
+#: when a round lowers the cost by less than FIT_TOLERANCE of it (by the 4th or
+#: 5th round usually; later rounds changed it by under 1e-4, not the choice).
 FIT_ROUNDS = 8
+FIT_TOLERANCE = 1e-4
 #: Huber threshold of the relative residuals, in robust standard deviations.
 HUBER_K = 2.0
 #: Weight of the prior pulling each falloff value towards Lambert (1), and of
@@ -383,8 +386,9 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
         loss, total = kernels.huber_normal_equations(
             robust=robust, falloff=falloff, specular=specular, albedo=albedo,
             threshold=threshold, normal=normal, right=right, **data)
+        converged = round_ > 0 and loss / measured > (1.0 - FIT_TOLERANCE) * cost
         cost = loss / measured
-        if round_ == FIT_ROUNDS:
+        if round_ == FIT_ROUNDS or converged:
             break
         normal /= total
         right /= total
