@@ -75,6 +75,35 @@ def quadratic_fit_matrix(half: int) -> np.ndarray:
     return np.linalg.pinv(design).astype(np.float64)
 
 
+@njit(cache=True, parallel=True)
+def fit_quadratics(series, ys, xs, half, fit, coef):
+    """coef[y, x, s, :] = fit @ (the (2 half + 1)^2 patch of series s around (y, x))
+    for every pixel (ys[p], xs[p]); ``fit`` is :func:`quadratic_fit_matrix`."""
+    side = 2 * half + 1
+    n_series = series.shape[2]
+    for p in prange(ys.size):
+        y, x = ys[p], xs[p]
+        for s in range(n_series):
+            c0 = c1 = c2 = c3 = c4 = c5 = 0.0
+            t = 0
+            for dy in range(side):
+                for dx in range(side):
+                    value = series[y + dy - half, x + dx - half, s]
+                    c0 += fit[0, t] * value
+                    c1 += fit[1, t] * value
+                    c2 += fit[2, t] * value
+                    c3 += fit[3, t] * value
+                    c4 += fit[4, t] * value
+                    c5 += fit[5, t] * value
+                    t += 1
+            coef[y, x, s, 0] = c0
+            coef[y, x, s, 1] = c1
+            coef[y, x, s, 2] = c2
+            coef[y, x, s, 3] = c3
+            coef[y, x, s, 4] = c4
+            coef[y, x, s, 5] = c5
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _eval(coef, y, x, j, u, v):
     """Value and (d/du, d/dv) at (u, v) of quadratic j of gauge pixel (y, x)."""

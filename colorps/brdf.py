@@ -377,6 +377,7 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
                                out=relative, **data)
     threshold = HUBER_K * 1.4826 * np.median(np.abs(relative[base_weight > 0])) + 1e-12
     del relative
+    cost = np.inf
     for round_ in range(FIT_ROUNDS + 1):
         if round_:
             kernels.fit_albedo(robust=robust, falloff=falloff, specular=specular,
@@ -386,7 +387,7 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
         loss, total = kernels.huber_normal_equations(
             robust=robust, falloff=falloff, specular=specular, albedo=albedo,
             threshold=threshold, normal=normal, right=right, **data)
-        converged = round_ > 0 and loss / measured > (1.0 - FIT_TOLERANCE) * cost
+        converged = loss / measured > (1.0 - FIT_TOLERANCE) * cost
         cost = loss / measured
         if round_ == FIT_ROUNDS or converged:
             break

@@ -41,8 +41,6 @@ __all__ = [
     "refine_normals",
 ]
 
-#: Gauge pixels whose models are fitted at a time (bounds the patch memory).
-MODEL_CHUNK = 4096
 #: Refinement methods of ``Options.refine``.
 REFINE_METHODS = ("quadratic", "none")
 #: Measurements the fit leaves more than this many noise units (times the
@@ -114,26 +112,22 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
     from scipy.ndimage import binary_erosion
 
     hg, wg = usable.shape
-    series = np.concatenate([values, normals], axis=-1).astype(np.float32)
     window = np.zeros((hg, wg), dtype=np.int8)
     for half in sorted(_refine_kernels.HALVES):  # wider windows overwrite narrower
         side = 2 * half + 1
         window[binary_erosion(usable, np.ones((side, side), bool), border_value=0)] = half
     if needed is not None:
         window[~needed] = 0
-    coef = np.zeros((hg, wg, series.shape[2], 6), dtype=np.float32)
-    for half in _refine_kernels.HALVES:
-        ys, xs = np.nonzero(window == half)
-        fit = _refine_kernels.quadratic_fit_matrix(half).astype(np.float32)  # (6, side^2)
-        dy, dx = np.mgrid[-half:half + 1, -half:half + 1]
-        for a in range(0, len(ys), MODEL_CHUNK):
-            py = ys[a:a + MODEL_CHUNK, None] + dy.ravel()[None, :]
-            px = xs[a:a + MODEL_CHUNK, None] + dx.ravel()[None, :]
-            patches = series[py, px]  # (K, side^2, S)
-            coef[ys[a:a + MODEL_CHUNK], xs[a:a + MODEL_CHUNK]] = \
-                np.einsum("at,kts->ksa", fit, patches)
-    return (np.ascontiguousarray(coef[..., :values.shape[2], :]),
-            np.ascontiguousarray(coef[..., values.shape[2]:, :]), window)
+    models = []
+    for series in (values, normals):
+        series = np.ascontiguousarray(series, dtype=np.float32)
+        coef = np.zeros((hg, wg, series.shape[2], 6), dtype=np.float32)
+        for half in _refine_kernels.HALVES:
+            ys, xs = np.nonzero(window == half)
+            _refine_kernels.fit_quadratics(series, ys, xs, half,
+                                           _refine_kernels.quadratic_fit_matrix(half), coef)
+        models.append(coef)
+    return models[0], models[1], window
 
 
 def noise_tables(scene: NoiseModel, gauge: NoiseModel) -> _refine_kernels.NoiseTables:
