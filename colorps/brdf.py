@@ -52,6 +52,9 @@ SHININESS_STEPS = 2
 #: best shininess of each round: every other one in the first round, then the
 #: best and its neighbours.
 ROUGHNESS_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
+#: A highlight peaking under this fraction of the diffuse albedo is too faint
+#: for the view direction to matter (:attr:`BRDF.depends_on_view`).
+VISIBLE_PEAK = 0.01
 #: Observations whose cosine of incidence at the estimated normal is below this
 #: are left out: attached-shadow boundaries are where normal errors matter most.
 MIN_FIT_COSINE = 0.02
@@ -126,6 +129,18 @@ class BRDF:
     def lambert(cls) -> BRDF:
         """The Lambertian finish (g = 1, no highlight)."""
         return cls()
+
+    @property
+    def highlight_peak(self) -> float:
+        """The highlight's largest value relative to the diffuse albedo (at its
+        centre, normal incidence): max(s) (shininess + 2) / 2."""
+        return max(self.specular) * (self.shininess + 2.0) / 2.0
+
+    @property
+    def depends_on_view(self) -> bool:
+        """Whether the view direction changes the shading by more than
+        VISIBLE_PEAK of the diffuse albedo (a highlight, or a roughness)."""
+        return self.roughness > 0.0 or self.highlight_peak > VISIBLE_PEAK
 
     @property
     def is_lambert(self) -> bool:

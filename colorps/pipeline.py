@@ -29,7 +29,7 @@ import numpy as np
 
 from . import __version__
 from .calibrate import calibrate_lights, sphere_from_mask
-from .errors import ExposureWarning, InputError, OutputError
+from .errors import ColorPSWarning, ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
 from .gauge_check import check_gauge, check_lights
@@ -256,6 +256,23 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
     return scene, read_image(stacks.scene_paths[0], options.encoding, rows=(0, 1))[1]
 
 
+def _warn_view(camera, shape: tuple[int, int], mask) -> None:
+    """Say that a virtual gauge's finish is rendered for a view along the optical
+    axis, and how far off it the camera's rays through the object go."""
+    ys, xs = np.nonzero(np.ones(shape, bool) if mask is None else mask)
+    if not len(ys):
+        return
+    rays = camera.rays(xs[:: max(1, len(xs) // 10000)], ys[:: max(1, len(ys) // 10000)],
+                       shape)
+    off_axis = float(np.degrees(np.arccos(np.clip(-rays[:, 2], -1.0, 1.0))).max())
+    warnings.warn(f"--camera with --lights: the fitted finish has a highlight or a "
+                  f"roughness, which depend on the view, but the virtual gauge is rendered "
+                  f"for a view along the optical axis; the camera's rays through the object "
+                  f"are up to {off_axis:.1f} degrees off it (normals where the highlight "
+                  "matters may be off by up to about half that)", ColorPSWarning,
+                  stacklevel=3)
+
+
 def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mask,
                 progress: bool):
     """(gauge, its stack, the settings with it, the virtual gauge's finish and fits or
@@ -274,6 +291,8 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress)
+        if inputs.camera is not None and brdf.depends_on_view:
+            _warn_view(inputs.camera, stacks.shape[1:3], mask)
         return gauge, gauge.stack, run, (brdf, fits), checked, scene
     gauge_stack, _ = read_stack(stacks.gauge_paths, encoding, name="gauge", progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")

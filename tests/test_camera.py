@@ -191,3 +191,35 @@ def test_cli_camera_from_k_txt_is_used_and_recorded(tmp_path, capsys):
     assert exit_.value.code == 2
     assert "bad.txt" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_camera_with_a_light_file_says_the_finish_is_rendered_on_axis(tmp_path, capsys):
+    """--lights renders the gauge for a view along the optical axis: with a fitted
+    highlight (which depends on the view) and a camera, the run says how far off
+    the axis the object's rays go; with a matte finish it has nothing to say."""
+    from colorps import synth
+    from colorps.cli import main
+    from colorps.finishes import Gloss
+    from colorps.io import write_image
+
+    lights = synth.ring_lights(12, 40.0)
+    scene = synth.smiley_surface(72)
+    for name, gloss in (("glossy", Gloss(0.5, "ggx", alpha=0.3)), ("matte", 0.0)):
+        folder = tmp_path / name
+        folder.mkdir()
+        stack = synth.render(scene, lights, gloss=gloss, noise=0.002)
+        for k, image in enumerate(stack):
+            write_image(folder / f"scene_{k:02d}.exr", image, channel_names=["R", "G", "B"])
+        np.savetxt(folder / "lights.txt", lights.directions[:, 0])
+        write_image(folder / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+        capsys.readouterr()
+        assert main(["reconstruct", "--scene", str(folder / "scene_*.exr"), "--lights",
+                     str(folder / "lights.txt"), "--mask", str(folder / "mask.png"),
+                     "--camera", "200", "--out", str(folder / "out"), "--quiet"]) == 0
+        said = capsys.readouterr().err
+        if name == "glossy":
+            # The mask's corners are about 33 px from the centre: atan(33 / 200).
+            assert "rendered for a view along the optical axis" in said
+            assert "up to 9." in said or "up to 10." in said, said
+        else:
+            assert "optical axis" not in said
