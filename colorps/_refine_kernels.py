@@ -118,6 +118,21 @@ def _eval(coef, y, x, j, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def _band_scale(coef, y, x, obs, weights, robust, robust_on, k, n_lights, u, v):
+    """The best scale a_k of band k's model at (u, v) (weights times the robust
+    factors when ``robust_on``); 0 when no measurement of the band is used."""
+    sg = 0.0
+    gg = 0.0
+    for i in range(n_lights):
+        wt = weights[k, i] * (robust[k, i] if robust_on else 1.0)
+        if wt > 0.0:
+            g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
+            sg += wt * obs[k, i] * g
+            gg += wt * g * g
+    return sg / gg if gg > 0.0 else 0.0
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u, v):
     """STEPS Gauss-Newton steps from (u, v) inside the neighbourhood; returns the
     offset and the normal equations' matrix (h00, h01, h11) at it. Each
@@ -131,17 +146,9 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
         g0 = 0.0
         g1 = 0.0
         for k in range(n_bands):
-            sg = 0.0
-            gg = 0.0
-            for i in range(n_lights):
-                wt = weights[k, i] * robust[k, i]
-                if wt > 0.0:
-                    g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
-                    sg += wt * obs[k, i] * g
-                    gg += wt * g * g
-            if gg <= 0.0:
+            a = _band_scale(coef, y, x, obs, weights, robust, True, k, n_lights, u, v)
+            if a == 0.0:
                 continue
-            a = sg / gg
             for i in range(n_lights):
                 wt = weights[k, i] * robust[k, i]
                 if wt > 0.0:
@@ -168,7 +175,7 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _meat(coef, y, x, obs, weights, n_bands, n_lights, u, v):
+def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v):
     """The measured residuals' spread along the Jacobian at (u, v), the middle
     of the sandwich covariance: sum (w r)^2 J J^T (m00, m01, m11) over the
     measurements the fit used, at their noise weights w (not down-weighted:
@@ -178,18 +185,10 @@ def _meat(coef, y, x, obs, weights, n_bands, n_lights, u, v):
     count = 0
     scales = 0
     for k in range(n_bands):
-        sg = 0.0
-        gg = 0.0
-        for i in range(n_lights):
-            wt = weights[k, i]
-            if wt > 0.0:
-                g, _, _ = _eval(coef, y, x, k * n_lights + i, u, v)
-                sg += wt * obs[k, i] * g
-                gg += wt * g * g
-        if gg <= 0.0:
+        a = _band_scale(coef, y, x, obs, weights, robust, False, k, n_lights, u, v)
+        if a == 0.0:
             continue
         scales += 1
-        a = sg / gg
         for i in range(n_lights):
             wt = weights[k, i]
             if wt > 0.0:
@@ -297,7 +296,7 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, o
     out_cov[p] = c00 * tu + 2.0 * c01 * tuv + c11 * tv
     # The sandwich C M C, M the measured residuals' spread: the covariance the
     # residuals show, whatever their cause.
-    m00, m01, m11, used = _meat(coef, y, x, obs, weights, n_bands, n_lights, u, v)
+    m00, m01, m11, used = _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v)
     if used:
         s00 = c00 * c00 * m00 + 2.0 * c00 * c01 * m01 + c01 * c01 * m11
         s01 = c00 * c01 * m00 + (c00 * c11 + c01 * c01) * m01 + c01 * c11 * m11
