@@ -75,11 +75,15 @@ class Gloss:
                              f"please; got {self.strength}, {self.shininess}, {self.alpha}")
 
 
-def oren_nayar_factor(normals: np.ndarray, directions: np.ndarray, sigma: float) -> np.ndarray:
+def oren_nayar_factor(normals: np.ndarray, directions: np.ndarray, sigma: float,
+                      views: np.ndarray | None = None) -> np.ndarray:
     """(m, N) Oren-Nayar factor ``A + B max(0, cos dphi) sin(alpha) tan(beta)`` of
-    N unit normals under m light directions, view along +z (1 everywhere when
-    sigma is 0: Lambert). Multiply by the cosine of incidence for the shading."""
+    N unit normals under m light directions (1 everywhere when sigma is 0:
+    Lambert). Multiply by the cosine of incidence for the shading. ``views``
+    (N, 3): each point's unit direction towards the camera (default +z)."""
     normals = np.asarray(normals, dtype=np.float64)
+    views = np.broadcast_to(VIEW if views is None else np.asarray(views, np.float64),
+                            normals.shape)
     directions = np.atleast_2d(np.asarray(directions, dtype=np.float64))
     s2 = sigma ** 2
     a = 1.0 - 0.5 * s2 / (s2 + 0.33)
@@ -87,13 +91,13 @@ def oren_nayar_factor(normals: np.ndarray, directions: np.ndarray, sigma: float)
     if b == 0.0:
         return np.full((len(directions), len(normals)), a)
     cos_i = np.clip(directions @ normals.T, -1.0, 1.0)  # (m, N)
-    cos_r = np.clip(normals[:, 2], 0.0, 1.0)  # (N,)
+    cos_r = np.clip((normals * views).sum(axis=1), 0.0, 1.0)  # (N,)
     theta_i = np.arccos(cos_i)
     theta_r = np.arccos(cos_r)
     larger = np.maximum(theta_i, theta_r)
     smaller = np.minimum(theta_i, theta_r)
     # cos of the azimuth difference: light and view projected on the tangent plane.
-    view_t = VIEW - cos_r[:, None] * normals  # (N, 3)
+    view_t = views - cos_r[:, None] * normals  # (N, 3)
     light_dot_view_t = directions @ view_t.T  # l . (v - (n.v) n) = l.v - (n.v)(n.l)
     light_t_norm = np.sqrt(np.maximum(1.0 - cos_i ** 2, 0.0))
     view_t_norm = np.sqrt(np.maximum(1.0 - cos_r ** 2, 0.0))
@@ -108,24 +112,28 @@ def oren_nayar(normals: np.ndarray, light: np.ndarray, sigma: float) -> np.ndarr
     return lit * oren_nayar_factor(normals, light, sigma)[0]
 
 
-def gloss_shape(normals: np.ndarray, light: np.ndarray, gloss: Gloss) -> np.ndarray:
-    """(N,) radiance of the highlight of one light, view along +z (0 where unlit)."""
-    half = light + VIEW
-    half = half / np.linalg.norm(half)
+def gloss_shape(normals: np.ndarray, light: np.ndarray, gloss: Gloss,
+                views: np.ndarray | None = None) -> np.ndarray:
+    """(N,) radiance of the highlight of one light (0 where unlit); ``views`` (N, 3):
+    each point's unit direction towards the camera (default +z)."""
+    views = np.broadcast_to(VIEW if views is None else np.asarray(views, np.float64),
+                            normals.shape)
+    half = light + views
+    half = half / np.linalg.norm(half, axis=-1, keepdims=True)
     cos_l = normals @ light
-    cos_h = np.clip(normals @ half, 0.0, 1.0)
+    cos_h = np.clip((normals * half).sum(axis=-1), 0.0, 1.0)
     lit = cos_l > 0
     if gloss.model == "blinn-phong":
         return np.where(lit, gloss.strength * cos_h ** gloss.shininess, 0.0)
     a2 = gloss.alpha ** 2
-    cos_v = np.clip(normals @ VIEW, 1e-6, 1.0)
+    cos_v = np.clip((normals * views).sum(axis=-1), 1e-6, 1.0)
     cos_l = np.clip(cos_l, 1e-6, 1.0)
     distribution = a2 / (np.pi * (cos_h ** 2 * (a2 - 1.0) + 1.0) ** 2)
 
     def smith(cosine):
         return 2.0 * cosine / (cosine + np.sqrt(a2 + (1.0 - a2) * cosine ** 2))
 
-    cos_d = float(np.clip(light @ half, 0.0, 1.0))  # the same for every normal
+    cos_d = np.clip(half @ light, 0.0, 1.0)  # the same for every normal of one view
     fresnel = gloss.strength + (1.0 - gloss.strength) * (1.0 - cos_d) ** 5
     lobe = distribution * fresnel * smith(cos_l) * smith(cos_v) / (4.0 * cos_v)
     return np.where(lit, np.pi * lobe, 0.0)
