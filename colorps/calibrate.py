@@ -18,10 +18,12 @@ centre is off by one pixel (2 / (r nz) radians: large near the rim), and
 
 A second bright blob (a window, a lamp's housing, a reflection of the room)
 makes an image **ambiguous** when its peak rises at least RIVAL_LEVEL of the
-brightest's height above the sphere's median: of such candidates :func:`calibrate_lights` takes the one most like
-the capture's unambiguous highlights (their median size: one light source
-makes highlights of one size on one sphere), and warns, naming the image and
-both positions. With no unambiguous image to compare with, it refuses.
+brightest's height above the sphere's median: of such candidates
+:func:`calibrate_lights` takes the one most like the capture's unambiguous
+highlights in size and shape (one light source makes highlights of one size
+and shape on one sphere, once the foreshortening towards the rim is undone),
+and warns, naming the image and both positions. With no unambiguous image to
+compare with, it refuses.
 """
 
 from __future__ import annotations
@@ -79,6 +81,10 @@ class Highlight:
         Peak over the sphere's median level.
     degrees_per_pixel : float
         Change of the direction per pixel of error in the centre.
+    elongation : float
+        Its longest over its shortest spread (intensity-weighted second
+        moments), with the sphere's foreshortening towards the rim undone (a
+        round source: about 1; a window or a bar: more).
     rival : float
         Peak of the brightest other candidate blob over this one's (0: none
         above RIVAL_LEVEL; 1 or more: the chosen blob is not the brightest).
@@ -91,12 +97,19 @@ class Highlight:
     clipped: int
     contrast: float
     degrees_per_pixel: float
+    elongation: float = 1.0
     rival: float = 0.0
+
+    @property
+    def unforeshortened_pixels(self) -> float:
+        """Its size as if seen face on: pixels / nz (the sphere's normal at its centre)."""
+        return self.pixels / max(float(self.direction[2] + 1.0) ** 0.5 / 2 ** 0.5, 1e-3)
 
     def as_dict(self) -> dict:
         return dict(x=self.x, y=self.y, direction=self.direction.tolist(), pixels=self.pixels,
                     clipped=self.clipped, contrast=self.contrast,
-                    degrees_per_pixel=self.degrees_per_pixel, rival=self.rival)
+                    degrees_per_pixel=self.degrees_per_pixel, elongation=self.elongation,
+                    rival=self.rival)
 
 
 def find_highlight(image, sphere: tuple[float, float, float], *,
@@ -220,7 +233,23 @@ def _highlight(values, peak_at, level, disk, sphere, clip_level, name, grid):
     clipped = int((values[blob] >= clip_level).sum()) if clip_level is not None else 0
     contrast = peak / level if level > 0 else np.inf
     return Highlight(hx, hy, direction, pixels, clipped, float(contrast),
-                     float(np.degrees(2.0 / (r * max(nz, 1e-3)))))
+                     float(np.degrees(2.0 / (r * max(nz, 1e-3)))),
+                     _elongation(x[blob] - hx, y[blob] - hy, weight, (nx, -ny), nz))
+
+
+def _elongation(dx, dy, weight, radial, nz: float) -> float:
+    """The square root of the largest over the smallest eigenvalue of the blob's weighted
+    covariance, its radial axis stretched by 1 / nz (undoing the foreshortening);
+    a blob of one pixel is round (1)."""
+    cov = np.cov(np.stack([dx, dy]), aweights=weight, bias=True) if len(dx) > 1 else \
+        np.zeros((2, 2))
+    norm = float(np.hypot(*radial))
+    if norm > 0:
+        e = np.array(radial) / norm
+        stretch = np.eye(2) + (1.0 / max(nz, 0.05) - 1.0) * np.outer(e, e)
+        cov = stretch @ cov @ stretch
+    low, high = np.linalg.eigvalsh(cov + 1.0 / 12.0 * np.eye(2))  # + a pixel's own spread
+    return float(np.sqrt(high / low))
 
 
 def sphere_from_mask(mask) -> tuple[float, float, float]:
@@ -249,9 +278,12 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
                      ) -> tuple[Lights, list[Highlight]]:
     """Light directions of a capture from its mirror-sphere images.
 
-    In an ambiguous image (module docstring) the candidate whose size is
-    closest (in ratio) to the median size of the unambiguous images' highlights
-    is taken, with an :class:`AmbiguousHighlightWarning`.
+    In an ambiguous image (module docstring) the candidate most like the
+    unambiguous images' highlights is taken, with an
+    :class:`AmbiguousHighlightWarning`: the least sum of the log ratios of its
+    size and of its elongation to their medians (both with the sphere's
+    foreshortening undone: :attr:`Highlight.unforeshortened_pixels`,
+    :attr:`Highlight.elongation`).
 
     Parameters
     ----------
@@ -280,7 +312,7 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
     names = list(names) if names is not None else [f"image {k}" for k in range(len(images))]
     candidates = [highlight_candidates(image, sphere, clip_level=clip_level, name=name)
                   for image, name in zip(images, names, strict=True)]
-    clear = [c[0].pixels for c in candidates if len(c) == 1]
+    clear = [c[0] for c in candidates if len(c) == 1]
     found = []
     for name, options in zip(names, candidates):
         if len(options) == 1:
@@ -291,11 +323,13 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
             raise InputError(f"{name}: {len(options)} bright blobs on the mirror sphere "
                              f"({where}) and no image with a single one to tell the light's "
                              "highlight by: mask the other reflections or give cleaner images")
-        typical = float(np.median(clear))
-        chosen = min(options, key=lambda o: abs(np.log(o.pixels / typical)))
+        size = float(np.median([c.unforeshortened_pixels for c in clear]))
+        shape = float(np.median([c.elongation for c in clear]))
+        chosen = min(options, key=lambda o: abs(np.log(o.unforeshortened_pixels / size)) +
+                     abs(np.log(o.elongation / shape)))
         warnings.warn(f"{name}: {len(options)} bright blobs on the mirror sphere ({where}); "
-                      f"took the one at ({chosen.x:.0f}, {chosen.y:.0f}), the size of the "
-                      f"other images' highlights ({typical:.0f} px): check this light",
+                      f"took the one at ({chosen.x:.0f}, {chosen.y:.0f}), the most like the "
+                      f"other images' highlights in size and shape: check this light",
                       AmbiguousHighlightWarning, stacklevel=2)
         found.append(chosen)
     return Lights(np.array([f.direction for f in found]),

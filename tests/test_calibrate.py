@@ -104,6 +104,26 @@ def test_a_brighter_window_beside_the_highlight_is_not_taken_for_the_light():
     assert all(f.rival == 0.0 for k, f in enumerate(found) if k != 2)
 
 
+def test_a_reflection_of_the_highlights_size_but_not_its_shape_is_not_taken():
+    """A bright bar (a window frame, a strip light's housing) of as many pixels as
+    the highlights: told apart by its shape. Highlights near the rim are
+    elongated by the foreshortening, which the comparison undoes."""
+    from colorps.calibrate import AmbiguousHighlightWarning, find_highlight
+
+    lights = synth.ring_lights(6, 70)  # highlights far out, foreshortened
+    stack = mirror_ball(lights, spread_deg=2.0, noise=0.002, seed=3)
+    clean = [find_highlight(image, SPHERE) for image in stack]
+    assert max(f.elongation for f in clean) < 1.6  # round once unforeshortened
+    size = int(np.median([f.pixels for f in clean]))
+    bar = stack[4].copy()
+    bar[112:114, 115:115 + size // 2] = 2.0  # as many pixels, brighter than the light
+    stack[4] = bar
+    with pytest.warns(AmbiguousHighlightWarning, match="image 4: 2 bright blobs"):
+        found_lights, found = calibrate_lights(stack, SPHERE)
+    assert degrees(found_lights.directions, lights.directions[:, 0]).max() < 0.6
+    assert found[4].rival > 1.0 and found[4].elongation < 1.6
+
+
 def test_only_ambiguous_images_are_refused():
     lights = synth.ring_lights(3, 45)
     stack = np.stack([_with_window(image) for image in mirror_ball(lights, noise=0.002)])
