@@ -446,6 +446,18 @@ def main(argv=None) -> int:
         return _run(args, received)
 
 
+def _print_highlights(names, found, sphere) -> None:
+    """calibrate-lights' table: per image the direction and how sure it is."""
+    print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
+    print(f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>4s} "
+          f"{'clip':>4s} {'elong':>5s} {'deg/px':>6s} {'rival':>5s}")
+    for name, f in zip(names, found):
+        x, y, z = f.direction
+        print(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
+              f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
+              f"{f.clipped:4d} {f.elongation:5.2f} {f.degrees_per_pixel:6.2f} {f.rival:5.2f}")
+
+
 def _run(args, received: list[int]) -> int:
     """Run the command; ``received`` lists the signals caught while it ran."""
     try:
@@ -481,15 +493,7 @@ def _run(args, received: list[int]) -> int:
             lights, found, sphere = calibrate_lights_files(
                 args.images, args.sphere, args.out, sphere_mask=args.sphere_mask,
                 overwrite=args.overwrite)
-            print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
-            print(f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>4s} "
-                  f"{'clip':>4s} {'elong':>5s} {'deg/px':>6s} {'rival':>5s}")
-            for name, f in zip(lights.names, found):
-                x, y, z = f.direction
-                print(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
-                      f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
-                      f"{f.clipped:4d} {f.elongation:5.2f} {f.degrees_per_pixel:6.2f} "
-                      f"{f.rival:5.2f}")
+            _print_highlights(lights.names, found, sphere)
             print(f"wrote {len(found)} light directions to {args.out}")
         elif args.command == "relight":
             from .relight import relight_files
