@@ -11,10 +11,12 @@ and the offset minimising the weighted misfit
     E(u, v) = sum_ki w_ki (S_ki - a_k G_ki(u, v))^2,  a_k the best scale of band k
 
 is found by Gauss-Newton (variable projection: a_k in closed form at every
-step), inside the neighbourhood (|u|, |v| <= 1). The gauge normals get the same
-quadratic model and are evaluated at the optimum; the Jacobian gives the
-offset's covariance (J^T W J)^-1 and, through the normal's derivatives, the
-angular uncertainty.
+step), inside the neighbourhood (|u|, |v| <= 1). A pixel matched to a gauge
+pixel on the usable gauge's outermost ring (no full 3 x 3 neighbourhood: no
+model) starts from the model of a neighbour that has one, at its own place. The
+gauge normals get the same quadratic model and are evaluated at the optimum;
+the Jacobian gives the offset's covariance (J^T W J)^-1 and, through the
+normal's derivatives, the angular uncertainty.
 """
 
 from collections import namedtuple
@@ -207,6 +209,23 @@ def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v):
 
 
 @njit(cache=True, inline="always")
+def _modelled_neighbour(window, y, x):
+    """(dy, dx) of the 8-neighbour of (y, x) with the widest model window (a
+    4-neighbour before a diagonal one); (0, 0) when none has one."""
+    best_dy = 0
+    best_dx = 0
+    best = 0
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)):
+        yy = y + dy
+        xx = x + dx
+        if 0 <= yy < window.shape[0] and 0 <= xx < window.shape[1] and window[yy, xx] > best:
+            best = window[yy, xx]
+            best_dy = dy
+            best_dx = dx
+    return best_dy, best_dx
+
+
+@njit(cache=True, inline="always")
 def _has(mask, i):
     """Image i is in the light mask (words of uint64, colorps.light_masks)."""
     return (mask[i >> 6] >> np.uint64(i & 63)) & np.uint64(1) != 0
@@ -252,10 +271,19 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, o
     robust[:] = 1.0
     y, x = qy[p], qx[p]
     out_ok[p] = False
-    if window[y, x] == 0:
-        return
     u = 0.0
     v = 0.0
+    if window[y, x] == 0:
+        # A gauge pixel without a model (its neighbourhood reaches past the
+        # usable gauge: the rim) starts from a neighbour that has one, at the
+        # pixel's own place (offset -dy, -dx from it).
+        dy, dx = _modelled_neighbour(window, y, x)
+        if dy == 0 and dx == 0:
+            return
+        y += dy
+        x += dx
+        u = -float(dx)
+        v = -float(dy)
     h00 = h01 = h11 = 0.0
     for move in range(MAX_MOVES + 1):
         u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, robust, limit,
