@@ -161,6 +161,29 @@ def test_light_masks_round_trip(m):
     np.testing.assert_array_equal(light_masks.of_lights(picked, m), masks[2, 1])
 
 
+def test_many_sets_of_clipped_lights_do_not_make_a_table_each():
+    """24 lights, the scene overexposed so that each pixel clips under its own
+    few lights: hundreds of distinct clipped sets, solved by the per-pixel fit
+    with those lights left out (the few it cannot solve: on a table of their own
+    set), not by a table per set."""
+    lighting = synth.ring_lights(24, 40.0)
+    scene = synth.smiley_surface(64)
+    ball = synth.sphere_surface(81, 38)
+    stack = synth.render(scene, lighting, noise=0.001, seed=4) * 1.6  # the scene overexposed
+    gauge_stack = synth.render(ball, lighting, noise=0.001, seed=5)
+    clipped = (stack >= 1.0).any(axis=-1) & scene.mask  # (m, H, W)
+    stack, gauge_stack = np.minimum(stack, 1.0), np.minimum(gauge_stack, 1.0)
+    sets = {tuple(np.flatnonzero(clipped[:, y, x])) for y, x in zip(*np.nonzero(clipped.any(0)))}
+    assert len(sets) > 100  # a table each made 243 tables (3.5 s)
+    result = reconstruct(stack, gauge_stack, Gauge.from_sphere((81, 81), 40, 40, 38),
+                         mask=scene.mask, clip_level=1.0, read_noise=0.001, gain=0.0)
+    hit = clipped.any(axis=0)
+    assert result.solved[hit].all()
+    assert sum(1 for g in result.stats.grids if g.lights_dropped) < len(sets) / 4
+    errors = angular_error(result.normals[hit], scene.normals[hit])
+    assert np.median(errors) < 0.15 and errors.mean() < 0.6
+
+
 def test_clipped_lights_past_64_images_are_dropped_not_refused():
     m = 72
     lighting = synth.ring_lights(m, 45.0)
