@@ -45,7 +45,9 @@ MIN_FIT_IMAGES = 6
 #: one that matches more than WORSE_FIT worse is also warned about.
 WORSE_FIT = 0.02
 #: Pixels of the scene the fit uses (a fixed random sample of the solved ones).
-FIT_PIXELS = 2500
+#: 1500 against 2500: DiLiGenT Ball 1.13 against 1.15 degrees, the synthetic
+#: glossy, rough and varnished sets as close or closer, the fits 35 % faster.
+FIT_PIXELS = 1500
 
 
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
