@@ -64,7 +64,8 @@ Pixels = namedtuple("Pixels", "ov y x qy qx bands dropped")
 NoiseTables = namedtuple("NoiseTables", "noise levels table")
 #: Outputs, one per pixel: the gauge pixel the fit ended at (y, x) and the
 #: offset (u, v) from it, the unit normal (P, 3), the normal's angular variance
-#: cov (radians^2), and ok, whether it was refined.
+#: under the noise model cov and from the sandwich of the residuals fit
+#: (radians^2; NaN: no degrees of freedom left), and ok, whether it was refined.
 Refined = namedtuple("Refined", "y x u v normal cov fit ok")
 
 
