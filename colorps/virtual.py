@@ -163,8 +163,9 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         if progress:
             print(f"brdf fit {round_ + 1}/{fits}: {record['pixels']} pixels, RMS relative "
                   f"residual {record['rms_relative']:.4f}, highlight "
-                  f"{max(brdf.specular):.4f} x shininess {brdf.shininess:.0f}",
-                  file=sys.stderr)
+                  f"{max(brdf.specular):.4f} x shininess {brdf.shininess:.0f}, roughness "
+                  f"{brdf.roughness:.1f} rad (the scene matched the gauge before it at "
+                  f"{record['match_residual_median']:.2f} noise units)", file=sys.stderr)
     start, fitted = history[0]["match_residual_median"], history[-1]["match_residual_median"]
     kept = len(history) == 1 or fitted < start
     history[-1]["kept"] = kept
