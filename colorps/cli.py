@@ -477,8 +477,9 @@ def _run(args, received: list[int]) -> int:
                 print(f"solved {s.solved} of {s.pixels} pixels "
                       f"({s.solved_from_light_subset} from a light subset; table "
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
-                      f"{median:.2f}, {median * s.model_scale:.2f} in noise units before "
-                      f"the model scale {s.model_scale:.2f}; {s.seconds.run:.2f} s in all); "
+                      f"{median:.2f}, {s.residual_median_noise_units or 0.0:.2f} in noise "
+                      f"units before the model scale {s.model_scale:.2f}; "
+                      f"{s.seconds.run:.2f} s in all); "
                       f"results in {args.out}/")
         elif args.command == "batch":
             return _batch(args)

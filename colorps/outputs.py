@@ -460,8 +460,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
     width = result.normals.shape[1]
     title = f"colorps {result.stats.mode} mode: {result.stats.solved} pixels solved"
     if result.stats.residual_median is not None:  # the fit before any run-level scale
-        title += (f", median residual {result.stats.residual_median * result.stats.model_scale:.2f}"
-                  " noise units")
+        title += f", median residual {result.stats.residual_median_noise_units:.2f} noise units"
 
     def exr(p, image, channels):
         return write_image(p, image, channel_names=channels, tile=exports.exr_tile)

@@ -177,6 +177,13 @@ class ReconstructionStats:
     uncertainty_p95: float | None
     seconds: Timings
 
+    @property
+    def residual_median_noise_units(self) -> float | None:
+        """The median residual before the run's model scale (which brings every
+        run's median to about 1): how well the gauge explains the scene."""
+        return None if self.residual_median is None else \
+            self.residual_median * self.model_scale
+
     def as_dict(self) -> dict:
         """Nested plain dicts and lists (JSON-ready)."""
         return dataclasses.asdict(self)

@@ -182,12 +182,6 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
     return brdf, history
 
 
-def _absolute_median(result) -> float:
-    """Median match residual in noise units, before the run's model scale (which
-    brings every run's median to about 1 and so could not tell two finishes apart)."""
-    return float(result.stats.residual_median * result.stats.model_scale)
-
-
 def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, mask,
                radius: float, rng: np.random.Generator) -> tuple[BRDF, dict]:
     """Match the scene against the gauge rendered with ``brdf``; fit a finish to a
@@ -211,5 +205,6 @@ def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, ma
     fitted, rms = fit_brdf(observed, result.normals[ys, xs].astype(np.float64),
                            lights.directions, colours, usable)
     return fitted, dict(pixels=len(ys),
-                        match_residual_median=_absolute_median(result),
+                        # Not run-scaled: scaled, every finish's median is about 1.
+                        match_residual_median=result.stats.residual_median_noise_units,
                         rms_relative=rms, **fitted.as_dict())
