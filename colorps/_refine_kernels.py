@@ -45,6 +45,13 @@ DAMPING = 1e-9
 #: to the neighbouring gauge pixel, at most this many times (noisy pixels whose
 #: table match is off by more than a pixel).
 MAX_MOVES = 3
+#: At the usable gauge's edge (the next gauge pixel has no model) the fit may
+#: go up to this many pixels past the last modelled one, on its model: scene
+#: normals beyond what the gauge shows, as on a sphere off a lens's axis, whose
+#: table stops short of grazing on the side away from the axis (7.6 degrees off
+#: axis, deep folds: mean 0.82 -> 0.59 degrees, p99 10.3 -> 5.8, facets
+#: 1.6 -> 0.0 %; 5 or 8 pixels gave the same).
+EXTRAPOLATE = 3.0
 #: Pixels handed to a thread at a time (scratch allocated once per chunk).
 PIXEL_CHUNK = 256
 
@@ -136,7 +143,7 @@ def _band_scale(coef, y, x, obs, weights, robust, robust_on, k, n_lights, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u, v):
+def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u, v, reach):
     """STEPS Gauss-Newton steps from (u, v) inside the neighbourhood; returns the
     offset and the normal equations' matrix (h00, h01, h11) at it. Each
     measurement's weight is times its robust factor, which each step sets to
@@ -172,8 +179,8 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
         det = a00 * a11 - h01 * h01
         if det <= 0.0:
             break
-        u = min(max(u + (a11 * g0 - h01 * g1) / det, -1.0), 1.0)
-        v = min(max(v + (a00 * g1 - h01 * g0) / det, -1.0), 1.0)
+        u = min(max(u + (a11 * g0 - h01 * g1) / det, -reach), reach)
+        v = min(max(v + (a00 * g1 - h01 * g0) / det, -reach), reach)
     return u, v, h00, h01, h11
 
 
@@ -288,11 +295,14 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, o
     h00 = h01 = h11 = 0.0
     for move in range(MAX_MOVES + 1):
         u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, robust, limit,
-                                            n_bands, n_lights, u, v)
+                                            n_bands, n_lights, u, v, 1.0)
         step_x = 1 if u >= 1.0 else -1 if u <= -1.0 else 0
         step_y = 1 if v >= 1.0 else -1 if v <= -1.0 else 0
-        if (step_x == 0 and step_y == 0) or move == MAX_MOVES or \
-                window[y + step_y, x + step_x] == 0:
+        if (step_x == 0 and step_y == 0) or move == MAX_MOVES:
+            break
+        if window[y + step_y, x + step_x] == 0:
+            u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, robust, limit,
+                                                n_bands, n_lights, u, v, EXTRAPOLATE)
             break
         y += step_y
         x += step_x

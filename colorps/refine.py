@@ -7,7 +7,9 @@ quadratic model of every gauge measurement (and of the gauge normal) over its
 5 x 5 neighbourhood (3 x 3 near the rim), and moves to the sub-pixel position whose modelled
 observation vector explains the pixel's best (weighted by the noise model,
 over the bands and lights the match used, measurements far outside the noise
-down-weighted: ROBUST_LIMIT), by Gauss-Newton. This works for any gauge given
+down-weighted: ROBUST_LIMIT), by Gauss-Newton. At the edge of the usable
+gauge the fit may go a few pixels past it on the outermost model
+(EXTRAPOLATE): normals the gauge does not show. This works for any gauge given
 as normals and a mask, not only for spheres.
 
 The **uncertainty** is the radius (degrees) within which the true normal lies
@@ -74,7 +76,7 @@ class Refinement:
         degrees of freedom left).
     offset : (P, 2) ndarray of float32
         Refined position in gauge pixels (columns, rows) relative to the
-        matched gauge pixel (up to MAX_MOVES + 1 pixels away).
+        matched gauge pixel (up to MAX_MOVES + EXTRAPOLATE pixels away).
     refined : (P,) ndarray of bool
         False where the gauge neighbourhood was incomplete (rim, holes).
     """

@@ -41,9 +41,6 @@ SCENE_FITS = 2
 #: Fewer images than this leave too few measurements per pixel to tell a
 #: finish from tilted normals: the scene is taken as Lambertian.
 MIN_FIT_IMAGES = 6
-#: A fit that matches no better than Lambert is not kept (the report says so);
-#: one that matches more than WORSE_FIT worse is also warned about.
-WORSE_FIT = 0.02
 #: Pixels of the scene the fit uses (a fixed random sample of the solved ones).
 #: 1500 against 2500: DiLiGenT Ball 1.13 against 1.15 degrees, the synthetic
 #: glossy, rough and varnished sets as close or closer, the fits 35 % faster.
@@ -170,14 +167,13 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
     kept = len(history) == 1 or fitted < start
     history[-1]["kept"] = kept
     if not kept:
-        if fitted > (1.0 + WORSE_FIT) * start:
-            warnings.warn(f"brdf: the fitted finish matched the scene worse than a "
-                          f"Lambertian one (median residual {fitted:.2f} vs {start:.2f} noise units); "
-                          "the virtual gauge is Lambertian", ColorPSWarning, stacklevel=2)
-        elif progress:
+        # Not a warning: on a Lambertian scene the fit chases the noise and
+        # matches a few per cent worse (3-8 % on the synthetic sets), and
+        # Lambert is then the right answer.
+        if progress:
             print(f"brdf: the fitted finish matched the scene no better than a Lambertian "
-                  f"one (median residual {fitted:.2f} vs {start:.2f} noise units): dropped, the virtual "
-                  "gauge is Lambertian", file=sys.stderr)
+                  f"one (median residual {fitted:.2f} vs {start:.2f} noise units): dropped, "
+                  "the virtual gauge is Lambertian", file=sys.stderr)
         return BRDF.lambert(), history
     return brdf, history
 
