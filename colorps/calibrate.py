@@ -22,8 +22,12 @@ brightest's height above the sphere's median: of such candidates
 :func:`calibrate_lights` takes the one most like the capture's unambiguous
 highlights in size and shape (one light source makes highlights of one size
 and shape on one sphere, once the foreshortening towards the rim is undone),
-and warns, naming the image and both positions. With no unambiguous image to
-compare with, it refuses.
+and warns, naming the image and both positions; a candidate whose light would
+come from behind the object (a direction with z <= 0: a highlight farther than
+sin 45 degrees of the radius from the centre, which lights nothing facing the
+camera head on) is taken only when every candidate is. With no unambiguous
+image to compare with, it refuses, as it does an image whose light would come
+from behind (more likely a reflection of the room than a light of the capture).
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ColorPSWarning, InputError
-from .lights import Lights
+from .lights import MIN_ELEVATION_Z, Lights
 
 __all__ = ["AmbiguousHighlightWarning", "Highlight", "calibrate_lights", "find_highlight",
            "highlight_candidates", "sphere_from_mask"]
@@ -283,7 +287,8 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
     :class:`AmbiguousHighlightWarning`: the least sum of the log ratios of its
     size and of its elongation to their medians (both with the sphere's
     foreshortening undone: :attr:`Highlight.unforeshortened_pixels`,
-    :attr:`Highlight.elongation`).
+    :attr:`Highlight.elongation`), of those whose light is in front of the
+    object when there are any.
 
     Parameters
     ----------
@@ -305,8 +310,9 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
     Raises
     ------
     InputError
-        An image without a highlight, or ambiguous images and no unambiguous
-        one to compare them with.
+        An image without a highlight or whose highlight gives a light from
+        behind the object, or ambiguous images and no unambiguous one to
+        compare them with.
     """
     images = np.asarray(stack)
     names = list(names) if names is not None else [f"image {k}" for k in range(len(images))]
@@ -325,12 +331,21 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
                              "highlight by: mask the other reflections or give cleaner images")
         size = float(np.median([c.unforeshortened_pixels for c in clear]))
         shape = float(np.median([c.elongation for c in clear]))
-        chosen = min(options, key=lambda o: abs(np.log(o.unforeshortened_pixels / size)) +
+        in_front = [o for o in options if o.direction[2] >= MIN_ELEVATION_Z] or options
+        chosen = min(in_front, key=lambda o: abs(np.log(o.unforeshortened_pixels / size)) +
                      abs(np.log(o.elongation / shape)))
         warnings.warn(f"{name}: {len(options)} bright blobs on the mirror sphere ({where}); "
                       f"took the one at ({chosen.x:.0f}, {chosen.y:.0f}), the most like the "
                       f"other images' highlights in size and shape: check this light",
                       AmbiguousHighlightWarning, stacklevel=2)
         found.append(chosen)
+    for name, highlight in zip(names, found):
+        if highlight.direction[2] < MIN_ELEVATION_Z:
+            elevation = np.degrees(np.arcsin(np.clip(highlight.direction[2], -1.0, 1.0)))
+            raise InputError(f"{name}: the highlight at ({highlight.x:.0f}, {highlight.y:.0f}) "
+                             f"gives a light from behind the object ({-elevation:.0f} degrees "
+                             "below the plane facing the camera), which lights nothing facing "
+                             "it: a reflection of the room? Check the image and the sphere's "
+                             "circle")
     return Lights(np.array([f.direction for f in found]),
                   names=tuple(str(n) for n in names)), found

@@ -158,3 +158,25 @@ def test_a_dark_sphere_is_found_from_its_mask(tmp_path):
                               str(tmp_path / "other.txt")], capture_output=True, text=True)
     assert neither.returncode == 1 and "--sphere-mask" in neither.stderr
     assert "Traceback" not in neither.stderr and not (tmp_path / "other.txt").exists()
+
+
+def test_a_reflection_from_behind_the_object_is_not_taken_for_the_light():
+    """A lamp behind the object (105 degrees from the view) reflected brighter than
+    the light, a round highlight like the others: told apart by its position,
+    which would give a light that lights nothing facing the camera. Where it is
+    the only highlight, the image is refused, by name."""
+    from colorps.calibrate import AmbiguousHighlightWarning
+
+    lights = synth.ring_lights(6, 45)
+    lamp = synth.ring_lights(1, 105)
+    stack = mirror_ball(lights, noise=0.002, seed=4)
+    reflection = mirror_ball(lamp, noise=0.0)[0]
+    stack[1] = stack[1] + 1.5 * reflection
+    with pytest.warns(AmbiguousHighlightWarning, match="image 1: 2 bright blobs"):
+        found_lights, found = calibrate_lights(stack, SPHERE)
+    assert degrees(found_lights.directions, lights.directions[:, 0]).max() < 0.6
+    assert found[1].rival > 1.0
+    stack[1] = 1.5 * reflection + 0.002
+    with pytest.raises(InputError, match=r"image 1: the highlight at .* from behind the "
+                       r"object \(1[45] degrees below"):
+        calibrate_lights(stack, SPHERE)
