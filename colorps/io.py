@@ -11,8 +11,10 @@ PNG                 8 / 16-bit int              sRGB
 JPEG                8-bit int (lossy)           sRGB
 ==================  ==========================  ==============================
 
-Integer values are scaled to 0..1 by OpenImageIO; sRGB decoding and encoding use
-colour-science's sRGB transfer functions. Alpha channels are dropped.
+Integer values are scaled to 0..1 as OpenImageIO scales them; 8- and 16-bit
+codes are decoded through a table of every code's linear value
+(:mod:`colorps.transfer`, colour-science's sRGB transfer function). Alpha
+channels are dropped.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import numpy as np
 from .errors import ImageReadError, InputError, LossyInputWarning, OutputError
 from .formats import CAMERA_RAW_SUFFIXES
 from .options import FLOAT_DARK_LEVEL
+from .transfer import TABLE_TYPES, decoding_table, srgb_decode
 
 __all__ = [
     "Encoding",
@@ -86,16 +89,17 @@ def _open_input(path: Path):
     return inp
 
 
-def _read_rows(inp, spec, start: int, stop: int):
-    """Rows ``start`` to ``stop - 1`` of an open image: scanlines, or for a tiled
-    file the row of tiles holding them (tile reads must be tile-aligned)."""
+def _read_rows(inp, spec, start: int, stop: int, as_type: str = "float"):
+    """Rows ``start`` to ``stop - 1`` of an open image as ``as_type``: scanlines,
+    or for a tiled file the row of tiles holding them (tile reads must be
+    tile-aligned)."""
     if spec.tile_width <= 0:
         return inp.read_scanlines(0, 0, spec.y + start, spec.y + stop, 0, 0, spec.nchannels,
-                                  "float")
+                                  as_type)
     first = start // spec.tile_height * spec.tile_height
     last = min(-(-stop // spec.tile_height) * spec.tile_height, spec.height)
     block = inp.read_tiles(0, 0, spec.x, spec.x + spec.width, spec.y + first, spec.y + last,
-                           spec.z, spec.z + max(1, spec.depth), 0, spec.nchannels, "float")
+                           spec.z, spec.z + max(1, spec.depth), 0, spec.nchannels, as_type)
     if block is None:
         return None
     block = np.asarray(block).reshape(last - first, spec.width, spec.nchannels)
@@ -324,14 +328,6 @@ def input_levels(source, encoding: Encoding = "auto") -> tuple[float | None, flo
     return float(levels[0]), float(levels[1])
 
 
-def srgb_decode(values) -> np.ndarray:
-    """sRGB-encoded values (0..1) to linear, with colour-science."""
-    import colour
-
-    return np.asarray(colour.cctf_decoding(np.asarray(values, np.float64), function="sRGB"),
-                      dtype=np.float32)
-
-
 #: zlib level of PNG files written: 1 writes a 1-megapixel normal map 3.5 times
 #: faster than the default 6, for 12 % more bytes (measured 2026-12-02).
 PNG_COMPRESSION = 1
@@ -399,13 +395,16 @@ def read_image(path, encoding: Encoding = "auto", *,
         spec = inp.spec()
         file_format = inp.format_name()
         height = spec.height
+        stored = str(spec.format)
+        # 8/16-bit codes are read as they are and decoded by table (same values).
+        as_type = stored if stored in TABLE_TYPES else "float"
         if rows is None:
-            pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, as_type)
         else:
             start, stop = rows
             if not 0 <= start < stop <= spec.height:
                 raise InputError(f"{path}: rows {start}..{stop} outside its {spec.height}")
-            pixels = _read_rows(inp, spec, start, stop)
+            pixels = _read_rows(inp, spec, start, stop, as_type)
             height = stop - start
         problem = inp.geterror().strip()
     finally:
@@ -415,12 +414,17 @@ def read_image(path, encoding: Encoding = "auto", *,
     if file_format == "jpeg":
         warnings.warn(f"{path}: JPEG is lossy 8-bit; expect noisier normals than from "
                       "raw, 16-bit TIFF or EXR", LossyInputWarning, stacklevel=2)
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(height, spec.width, -1)
+    pixels = np.asarray(pixels).reshape(height, spec.width, -1)
     names = list(spec.channelnames)
     keep = [k for k in range(spec.nchannels) if k != spec.alpha_channel]
-    pixels = pixels[..., keep]
+    if len(keep) < spec.nchannels:
+        pixels = pixels[..., keep]
     names = [names[k] for k in keep]
-    if encoding == "srgb" or (encoding == "auto" and str(spec.format) in _INTEGER_TYPES):
+    srgb = encoding == "srgb" or (encoding == "auto" and stored in _INTEGER_TYPES)
+    if as_type != "float":
+        return decoding_table(as_type, "srgb" if srgb else "linear")[pixels], names
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if srgb:
         pixels = srgb_decode(pixels)
     return np.ascontiguousarray(pixels), names
 

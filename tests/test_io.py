@@ -191,3 +191,27 @@ def test_tiles_only_for_exr_files(tmp_path):
         with pytest.raises(InputError, match="tile"):
             write_image(path, image, tile=tile)
         assert not path.exists()
+
+
+@pytest.mark.parametrize("ext, dtype", [(".png", "uint8"), (".png", "uint16"),
+                                        (".tif", "uint8"), (".tif", "uint16")])
+@pytest.mark.parametrize("encoding", ["srgb", "linear"])
+def test_integer_files_decode_by_table_to_the_transfer_functions_values(tmp_path, rng, ext,
+                                                                        dtype, encoding):
+    """Every code of an 8/16-bit file is looked up in a table of decoded codes:
+    the same float32 values, bit for bit, as OpenImageIO's conversion to float
+    followed by colour-science's sRGB decoding, also for rows and with alpha."""
+    import OpenImageIO as oiio
+
+    image = rng.uniform(0, 1, (6, 300, 4)).astype(np.float32)
+    image[0, :256, 0] = np.linspace(0, 1, 256)  # every 8-bit code
+    path = write_image(tmp_path / f"f{ext}", image, dtype=dtype)
+    source = oiio.ImageInput.open(str(path))
+    floats = np.asarray(source.read_image(0, 0, 0, 4, "float"), np.float32)[..., :3]
+    source.close()
+    expected = np.asarray(colour.cctf_decoding(floats.astype(np.float64), "sRGB"),
+                          np.float32) if encoding == "srgb" else floats
+    decoded, names = read_image(path, encoding)
+    assert decoded.dtype == np.float32 and names == ["R", "G", "B"]
+    np.testing.assert_array_equal(decoded, expected)
+    np.testing.assert_array_equal(read_image(path, encoding, rows=(2, 5))[0], expected[2:5])
