@@ -241,14 +241,19 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
     from scipy.ndimage import binary_erosion, correlate
     from scipy.optimize import nnls
 
-    data = np.asarray(gauge_stack, dtype=np.float64)
-    m, h, w, c = data.shape
+    m, h, w, c = gauge_stack.shape
     inner = binary_erosion(usable, np.ones((3, 3), bool), border_value=0)
     if centre is not None and radius is not None:
         yy, xx = np.mgrid[0:h, 0:w]
         inner &= np.hypot(xx - centre[0], yy - centre[1]) < NOISE_RADIUS_FRACTION * radius
     if inner.sum() < NOISE_MIN_PIXELS:
         return base
+    # Only the usable pixels' box is filtered: an inner pixel's 3 x 3 lies in it
+    # (a scene's mask is often a small part of its images).
+    rows, cols = np.nonzero(usable.any(axis=1))[0], np.nonzero(usable.any(axis=0))[0]
+    box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    data = np.asarray(gauge_stack[:, box[0], box[1]], dtype=np.float64)
+    usable, inner = usable[box], inner[box]
     kernel = _quadratic_residual_filter()
     gain_factor = float((kernel * kernel).sum())  # var(residual) = factor * sigma^2
     values, residuals = [], []
