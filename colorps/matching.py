@@ -129,7 +129,8 @@ class Matches:
 
 
 def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress: bool,
-           model_scale: float | None = None) -> Matches:
+                 model_scale: float | None = None, origin: tuple[int, int] = (0, 0)
+                 ) -> Matches:
     """Match every masked pixel: one table per (bands, weights) group, then light subsets.
 
     Pixels with every band usable are matched on the full signature, the
@@ -138,12 +139,15 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
     by its signal-to-noise ratio (:func:`colorps.matching.weight_levels`).
     The residuals are then divided by the capture's model scale, and, with
     ``light_subsets``, pixels left far outside the noise are re-matched
-    without their most deviant light (:func:`_light_subsets`).
+    without their most deviant light (:func:`_light_subsets`). ``origin`` is
+    the (row, column) of the whole scene where ``mask`` begins (the model
+    scale's pixels are counted from the whole scene's corner).
     """
     state = first_match(capture, mask, options, progress)
     matched = state.row >= 0
     if model_scale is None:
-        model_scale = measured_model_scale(state.quality[matched & model_scale_pixels(mask) &
+        sampled = model_scale_pixels(mask, first_row=origin[0], first_col=origin[1])
+        model_scale = measured_model_scale(state.quality[matched & sampled &
                                                          np.isfinite(state.quality)])
     state.quality[matched] /= model_scale
     if options.light_subsets and capture.images >= MIN_LIGHTS + 1:
@@ -244,8 +248,8 @@ def _match_clipped(capture: Capture, state: _MatchState, options: Options,
     state.quality[ys, xs] /= model_scale
 
 
-def model_scale_pixels(mask: np.ndarray, step: int | None = None, first_row: int = 0
-                       ) -> np.ndarray:
+def model_scale_pixels(mask: np.ndarray, step: int | None = None, first_row: int = 0,
+                       first_col: int = 0) -> np.ndarray:
     """The masked pixels whose first residuals give the model scale.
 
     Every ``step``-th row and column, counted from row and column 0 of the
@@ -259,13 +263,13 @@ def model_scale_pixels(mask: np.ndarray, step: int | None = None, first_row: int
         Pixels to solve (of the scene, or of a band of its rows).
     step : int, optional
         The whole scene's step, for a band of its rows.
-    first_row : int, optional
-        Row of the whole scene where ``mask`` begins.
+    first_row, first_col : int, optional
+        Row and column of the whole scene where ``mask`` begins.
     """
     if step is None:
         step = max(1, math.isqrt(int(np.count_nonzero(mask)) // MODEL_SCALE_PIXELS))
     picked = np.zeros(mask.shape, dtype=bool)
-    picked[(-first_row) % step::step, ::step] = True
+    picked[(-first_row) % step::step, (-first_col) % step::step] = True
     return picked & mask
 
 

@@ -117,8 +117,11 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     run = resolve(options, **changes)
     options = run.options
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
+    whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on
+    scene, mask = np.ascontiguousarray(scene[:, box[0], box[1]]), mask[box]
     setup = _setup(scene, gauge_stack, gauge, run, tables)
-    matches = match_pixels(setup.capture, mask, options, progress, model_scale)
+    matches = match_pixels(setup.capture, mask, options, progress, model_scale,
+                           origin=(box[0].start, box[1].start))
     solved = matches.row >= 0
     if options.max_residual is not None:
         solved &= matches.quality <= options.max_residual
@@ -162,9 +165,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         max_residual=options.max_residual, max_distance=options.max_distance,
         gauge_usable_fraction=setup.usable_gauge, warnings=tuple(setup.said),
         seconds=seconds)
-    return Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
-                          matches.bands_used,
-                          np.where(solved[..., None], matches.dropped, np.uint64(0)), stats)
+    return _embed(Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
+                                 matches.bands_used,
+                                 np.where(solved[..., None], matches.dropped, np.uint64(0)),
+                                 stats), box, whole)
 
 
 def first_residuals(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | None = None,
@@ -232,6 +236,38 @@ def _setup(scene, gauge_stack, gauge: Gauge, run: Resolved, tables=None) -> _Set
         scene_invalid=scene_sig.band_invalid_value.any(axis=-1), tables=tables)
     return _Setup(capture, scene_sig, gauge_sig, usable_gauge, said,
                   time.perf_counter() - t0)
+
+
+def _mask_box(mask: np.ndarray) -> tuple[slice, slice]:
+    """Rows and columns of the smallest box holding every masked pixel (the
+    whole image when none is masked)."""
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    if not len(rows):
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def _embed(result: Reconstruction, box: tuple[slice, slice], shape: tuple[int, int]
+           ) -> Reconstruction:
+    """A reconstruction of the mask's box as one of the whole image: outside the
+    box every pixel is background (no normal, no match)."""
+    if result.solved.shape == tuple(shape):
+        return result
+    maps = {}
+    for field in ("normals", "albedo", "quality", "uncertainty", "solved", "reason",
+                  "bands_used", "dropped_lights"):
+        inside = getattr(result, field)
+        fill = {"solved": False, "reason": Reason.BACKGROUND, "bands_used": 0,
+                "dropped_lights": 0}.get(field, np.nan)
+        maps[field] = np.full((*shape, *inside.shape[2:]), fill, dtype=inside.dtype)
+        maps[field][box] = inside
+    outside = int(np.prod(shape)) - result.solved.size
+    by_reason = dict(result.stats.pixels_by_reason)
+    label = Reason.BACKGROUND.label
+    by_reason[label] = by_reason.get(label, 0) + outside
+    stats = dataclasses.replace(result.stats, pixels=int(np.prod(shape)),
+                                pixels_by_reason=by_reason)
+    return dataclasses.replace(result, stats=stats, **maps)
 
 
 def _check_inputs(scene, gauge_stack, gauge: Gauge, mask, mode: str):

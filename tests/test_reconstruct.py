@@ -156,3 +156,44 @@ def test_tile_order_is_a_permutation_tile_by_tile(rng):
     # Tiles in row-major order, and pixels row-major inside each tile.
     key = np.stack([ys // 16, xs // 16, ys, xs], axis=1)
     assert all(tuple(a) < tuple(b) for a, b in zip(key[:-1], key[1:]))
+
+
+def test_only_the_masks_box_is_worked_on_and_the_maps_cover_the_image():
+    """A mask in one corner: the maps are the whole image's, background outside,
+    and equal to a run on the box cut out by hand; the statistics count every
+    pixel of the image."""
+    from colorps.reasons import Reason
+
+    lights = synth.ring_lights(6, 45)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lights, noise=0.002, seed=1)
+    ball = synth.sphere_surface(90, 40)
+    gauge = Gauge.from_sphere((90, 90), 44.5, 44.5, 40)
+    gauge_stack = synth.render(ball, lights, noise=0.002, seed=2)
+    mask = np.zeros(scene.mask.shape, bool)
+    mask[10:50, 20:70] = scene.mask[10:50, 20:70]
+    whole = reconstruct(stack, gauge_stack, gauge, mask=mask, read_noise=0.002, gain=0.0)
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    cut = reconstruct(stack[:, box[0], box[1]], gauge_stack, gauge, mask=mask[box],
+                      read_noise=0.002, gain=0.0)
+    assert whole.normals.shape == (*mask.shape, 3)
+    for name in ("normals", "albedo", "quality", "uncertainty", "reason", "dropped_lights"):
+        np.testing.assert_array_equal(getattr(whole, name)[box], getattr(cut, name))
+    outside = np.ones(mask.shape, bool)
+    outside[box] = False
+    assert (whole.reason[outside] == Reason.BACKGROUND).all()
+    assert np.isnan(whole.normals[outside]).all() and not whole.solved[outside].any()
+    assert whole.stats.pixels == mask.size
+    assert sum(whole.stats.pixels_by_reason.values()) == mask.size
+    assert whole.stats.pixels_by_reason[Reason.BACKGROUND.label] == (~mask).sum()
+
+
+def test_model_scale_pixels_are_counted_from_the_whole_scenes_corner():
+    from colorps.matching import model_scale_pixels
+
+    mask = np.random.default_rng(3).random((60, 70)) < 0.8
+    picked = model_scale_pixels(mask, step=3)
+    np.testing.assert_array_equal(
+        model_scale_pixels(mask[7:50, 11:64], step=3, first_row=7, first_col=11),
+        picked[7:50, 11:64])
