@@ -10,6 +10,9 @@ follows blames the gauge. Two checks name such a file and its position instead:
   pixels take exactly two values, 0 and one level, as a mask does and no
   photograph of a lit object can (a wholly clipped or black image is left to the
   checks that say so).
+
+:func:`relative_exposures` compares the exposures the files' headers record,
+for the warnings about scene images taken at other settings.
 """
 
 from __future__ import annotations
@@ -17,12 +20,16 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["MASK_WORDS", "check_contents", "check_names"]
+if TYPE_CHECKING:
+    from .io import ImageInfo
+
+__all__ = ["MASK_WORDS", "check_contents", "check_names", "relative_exposures"]
 
 #: A file whose name (without extension) holds one of these words, as a word
 #: or after a separator, is taken for a mask, not a photograph.
@@ -57,3 +64,37 @@ def check_contents(stack: np.ndarray, paths: Sequence[Path], name: str) -> None:
                 f"2 values ({values[0]:g} and {values[1]:g}), like a "
                 f"mask, not a photograph; give the {name} photographs only, and the mask "
                 "with --mask")
+
+
+def relative_exposures(scene: Sequence[ImageInfo],
+                       gauge: Sequence[ImageInfo]) -> np.ndarray | None:
+    """Each scene image's exposure over its gauge image's, from their headers.
+
+    A linear pixel value grows as exposure time x ISO / f-number²; each pair
+    is compared on the settings both of its headers record.
+
+    Returns
+    -------
+    (m,) ndarray or None
+        The ratios; None unless every pair records its exposure time.
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> from colorps.io import ImageInfo
+    >>> info = lambda **exposure: ImageInfo(Path("x.jpg"), 8, 8, 3, "uint8", exposure)
+    >>> relative_exposures([info(time=1 / 60, f_number=8.0), info(time=1 / 125, iso=200)],
+    ...                    [info(time=1 / 125, f_number=8.0), info(time=1 / 125)]).tolist()
+    [2.0833333333333335, 1.0]
+    """
+    ratios = []
+    for s, g in zip(scene, gauge):
+        if "time" not in s.exposure or "time" not in g.exposure:
+            return None
+        ratio = s.exposure["time"] / g.exposure["time"]
+        if "iso" in s.exposure and "iso" in g.exposure:
+            ratio *= s.exposure["iso"] / g.exposure["iso"]
+        if "f_number" in s.exposure and "f_number" in g.exposure:
+            ratio *= (g.exposure["f_number"] / s.exposure["f_number"]) ** 2
+        ratios.append(ratio)
+    return np.array(ratios) if ratios else None

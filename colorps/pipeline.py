@@ -33,7 +33,7 @@ from .errors import ColorPSWarning, ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
 from .gauge_check import check_gauge, check_lights
-from .hygiene import check_contents, check_names
+from .hygiene import check_contents, check_names, relative_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
 from .io import (
@@ -388,8 +388,6 @@ def _check_stack_exposures(scene_infos) -> None:
     """With calibrated lights (no gauge exposed alike to cancel it), warn when the
     headers say the scene's images were exposed differently: naming the image
     most unlike the others, and its place."""
-    from .io import relative_exposures
-
     ratios = relative_exposures(scene_infos, [scene_infos[0]] * len(scene_infos))
     k = None if ratios is None else _furthest_off(ratios)
     if k is None:
@@ -404,8 +402,6 @@ def _check_stack_exposures(scene_infos) -> None:
 def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
     """Warn when the headers say scene and gauge were exposed differently;
     return each scene image's exposure over its gauge image's (or None)."""
-    from .io import relative_exposures
-
     ratios = relative_exposures(scene_infos, gauge_infos)
     if ratios is None:
         return None

@@ -215,3 +215,16 @@ def test_integer_files_decode_by_table_to_the_transfer_functions_values(tmp_path
     assert decoded.dtype == np.float32 and names == ["R", "G", "B"]
     np.testing.assert_array_equal(decoded, expected)
     np.testing.assert_array_equal(read_image(path, encoding, rows=(2, 5))[0], expected[2:5])
+
+
+def test_stack_read_on_threads_keeps_the_order_and_names_a_bad_file(tmp_path, monkeypatch):
+    from colorps import io
+
+    monkeypatch.setattr(io, "READ_THREADS", 3)
+    paths = [write_image(tmp_path / f"img_{k:02d}.png", np.full((4, 5, 3), k / 20),
+                         dtype="uint16") for k in range(11)]
+    stack, _ = read_stack(paths, "linear")
+    np.testing.assert_allclose(stack[:, 0, 0, 0], np.arange(11) / 20, atol=1e-4)
+    paths[6].write_bytes(paths[6].read_bytes()[:60])  # truncated
+    with pytest.raises(ImageReadError, match="img_06.png"):
+        read_stack(paths, "linear")
