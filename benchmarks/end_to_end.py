@@ -1,8 +1,9 @@
 """End to end: ``colorps reconstruct`` against the floor of reading and writing its files.
 
-Run ``python benchmarks/end_to_end.py [--sizes 512 1024 2048] [--tile-at 4096]``.
-For each scene size (pixels on a side) it writes a synthetic capture with
-``colorps synth`` (8 images, one coloured light each, noise 0.005, gauge
+Run ``python benchmarks/end_to_end.py [--sizes 512 1024 2048] [--tile-at 4096]
+[--images 8 96]``. For each scene size (pixels on a side) and number of images
+it writes a synthetic capture with ``colorps synth`` (8 images unless
+``--images`` says otherwise, one coloured light each, noise 0.005, gauge
 images of 210 x 210 pixels, half-float EXR, the object mask), then runs, each
 in a fresh process so that start-up and imports count as a user feels them:
 
@@ -22,7 +23,8 @@ in a fresh process so that start-up and imports count as a user feels them:
 It prints a markdown table: wall seconds (best of ``--repeat``), the ratio to
 the floor, peak resident memory (the child's ``ru_maxrss``), the float32 size
 of the input, and how much the peak grows per byte of input from the previous
-size (the memory target is at most 2).
+size (the memory target is at most 2); with several ``--images``, each run's
+time over the same size's run with the fewest images.
 """
 
 from __future__ import annotations
@@ -152,15 +154,20 @@ def main(argv=None) -> None:
     parser.add_argument("--tile", type=int, default=1024)
     parser.add_argument("--memory-limit", type=float, default=None, metavar="GIB",
                         help="also run every size with --memory-limit GIB")
+    parser.add_argument("--images", type=int, nargs="+", default=[8],
+                        help="images (lights) per capture (default: 8)")
     args = parser.parse_args(argv)
     colorps = [sys.executable, "-m", "colorps.cli"]
-    rows, previous = [], None
+    rows, previous, fewest = [], None, {}
     with tempfile.TemporaryDirectory() as tmp:
-        for size in sorted(args.sizes):
-            capture = Path(tmp) / f"capture{size}"
-            subprocess.run([*colorps, "synth", "--out", str(capture), "--size", str(size), "--lights", "colour", "--noise", "0.005", "--gauge-radius", "100"], check=True,
-                           capture_output=True)
-            input_bytes = 4 * 3 * 8 * (size * size + 210 * 210)
+        for images, size in ((m, s) for m in sorted(args.images) for s in sorted(args.sizes)):
+            if size == min(args.sizes):
+                previous = None  # memory growth is between sizes of one light count
+            capture = Path(tmp) / f"capture{size}_{images}"
+            subprocess.run([*colorps, "synth", "--out", str(capture), "--size", str(size),
+                            "--images", str(images), "--lights", "colour", "--noise", "0.005",
+                            "--gauge-radius", "100"], check=True, capture_output=True)
+            input_bytes = 4 * 3 * images * (size * size + 210 * 210)
             out = Path(tmp) / "out"
             out.mkdir(exist_ok=True)
             runs = [("colorps", [])]
@@ -181,22 +188,25 @@ def main(argv=None) -> None:
                                     untimed_in_stdout=True)
             for label, wall, peak in measured:
                 if wall is None:
-                    rows.append((f"{size * size / 1e6:.2f}", label, f"{floor_wall:.2f}",
-                                 "refused", "", "", f"{input_bytes / 2**20:.0f}", peak))
+                    rows.append((f"{size * size / 1e6:.2f}", str(images), label,
+                                 f"{floor_wall:.2f}", "refused", "", "", "",
+                                 f"{input_bytes / 2**20:.0f}", peak))
                     continue
+                fewest.setdefault((size, label), wall)
                 first = label == runs[0][0]  # growth compares the sizes' first runs
                 growth = ("" if previous is None or not first else
                           f"{(peak - previous[1]) / (input_bytes - previous[0]):.2f}")
-                rows.append((f"{size * size / 1e6:.2f}", label, f"{floor_wall:.2f}",
-                             f"{wall:.2f}", f"{wall / floor_wall:.1f}",
-                             f"{peak / 2**20:.0f}",
+                rows.append((f"{size * size / 1e6:.2f}", str(images), label,
+                             f"{floor_wall:.2f}", f"{wall:.2f}", f"{wall / floor_wall:.1f}",
+                             f"{wall / fewest[size, label]:.1f}", f"{peak / 2**20:.0f}",
                              f"{input_bytes / 2**20:.0f}", growth))
                 if first:
                     previous = (input_bytes, peak)
-            print(f"{size}: done", file=sys.stderr)
-    print(f"\nend to end, {os.cpu_count()} cores, 8 RGB images + 8 gauge images, best of "
+            print(f"{size}, {images} images: done", file=sys.stderr)
+    print(f"\nend to end, {os.cpu_count()} cores, RGB scene and gauge images, best of "
           f"{args.repeat}\n")
-    head = ("MP", "run", "floor s", "colorps s", "x floor", "peak MiB", "input MiB",
+    head = ("MP", "images", "run", "floor s", "colorps s", "x floor",
+            f"x {min(args.images)} images", "peak MiB", "input MiB",
             "peak growth / input byte")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
