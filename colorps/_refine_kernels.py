@@ -72,8 +72,11 @@ NoiseTables = namedtuple("NoiseTables", "noise levels table")
 #: Outputs, one per pixel: the gauge pixel the fit ended at (y, x) and the
 #: offset (u, v) from it, the unit normal (P, 3), the normal's angular variance
 #: under the noise model cov and from the sandwich of the residuals fit
-#: (radians^2; NaN: no degrees of freedom left), and ok, whether it was refined.
-Refined = namedtuple("Refined", "y x u v normal cov fit ok")
+#: (radians^2; NaN: no degrees of freedom left), ok, whether it was refined,
+#: and over the fit's inliers (below) chi2, the squared residuals in noise units
+#: per degree of freedom (NaN: none left), and outliers (P, words), the light
+#: mask of its outliers.
+Refined = namedtuple("Refined", "y x u v normal cov fit ok chi2 outliers")
 
 
 def quadratic_fit_matrix(half: int) -> np.ndarray:
@@ -216,6 +219,34 @@ def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v):
     return scale * m00, scale * m01, scale * m11, True
 
 
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _inliers(coef, y, x, obs, weights, robust, limit, cut, n_bands, n_lights, u, v, outliers):
+    """The fit's chi-square per degree of freedom over its inliers: the lights
+    none of whose measurements the robust fit left more than ``cut`` noise
+    units off (robust factor limit / residual below limit / cut); the others
+    are set in ``outliers`` (a light mask)."""
+    for k in range(n_bands):
+        for i in range(n_lights):
+            if weights[k, i] > 0.0 and robust[k, i] * cut < limit:
+                outliers[i >> 6] |= np.uint64(1) << np.uint64(i & 63)
+    chi2 = 0.0
+    count = 0
+    scales = 0
+    for k in range(n_bands):
+        a = _band_scale(coef, y, x, obs, weights, robust, True, k, n_lights, u, v)
+        if a == 0.0:
+            continue
+        scales += 1
+        for i in range(n_lights):
+            if weights[k, i] > 0.0 and not _has(outliers, i):
+                g, _gu, _gv = _eval(coef, y, x, k * n_lights + i, u, v)
+                r = obs[k, i] - a * g
+                chi2 += weights[k, i] * r * r
+                count += 1
+    free = count - scales - 2
+    return chi2 / free if free > 0 else np.nan
+
+
 @njit(cache=True, inline="always")
 def _modelled_neighbour(window, y, x):
     """(dy, dx) of the 8-neighbour of (y, x) with the widest model window (a
@@ -345,18 +376,20 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, o
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def refine(gauge, pixels, noise_tables, limit, out):
+def refine(gauge, pixels, noise_tables, limit, cut, out):
     """Refine every pixel (``prange`` over chunks); see the module docstring.
 
     ``gauge`` is a :data:`GaugeModel`, ``pixels`` the :data:`Pixels` to refine,
-    ``noise_tables`` the :data:`NoiseTables` of both stacks; the results are
-    written into ``out``, a :data:`Refined` of preallocated arrays (y and x
-    start as qy and qx).
+    ``noise_tables`` the :data:`NoiseTables` of both stacks; measurements more
+    than ``limit`` noise units off are down-weighted, and lights with one more
+    than ``cut`` off are the fit's outliers. The results are written into
+    ``out``, a :data:`Refined` of preallocated arrays (y and x start as qy and
+    qx, outliers as zeros).
     """
     coef, ncoef, window, gauge_ov = gauge
     scene_ov, py, px, qy, qx, bands, dropped = pixels
     noise, levels, table = noise_tables
-    out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok = out
+    out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok, out_chi2, outliers = out
     n = py.shape[0]
     n_bands, n_lights = scene_ov.shape[2], scene_ov.shape[3]
     n_chunks = (n + PIXEL_CHUNK - 1) // PIXEL_CHUNK
@@ -369,3 +402,6 @@ def refine(gauge, pixels, noise_tables, limit, out):
                      noise, levels, table, obs, weights)
             _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, out_y,
                           out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok)
+            if out_ok[p]:
+                out_chi2[p] = _inliers(coef, out_y[p], out_x[p], obs, weights, robust, limit,
+                                       cut, n_bands, n_lights, out_u[p], out_v[p], outliers[p])

@@ -83,7 +83,9 @@ class Options:
     light_subsets : bool
         Re-solve pixels whose match leaves measurements far outside the noise
         (cast shadows, highlights) from the lights the gauge explains there,
-        any number of them (at least 3 remain; :mod:`colorps.shadows`).
+        any number of them (at least 3 remain; :mod:`colorps.shadows`); and
+        solve a pixel still over ``max_residual`` when the refinement's robust
+        fit explains it on its inliers.
     max_dropped_lights : int
         Before that, for captures of up to ``matching.GREEDY_MAX_LIGHTS`` lights,
         up to this many rounds of table-based light subsets, each dropping the

@@ -30,15 +30,17 @@ import numpy as np
 
 from . import _pixel_kernels, light_masks
 from ._checks import check_stack
+from ._config import MIN_LIGHTS
 from .errors import GaugeWarning, InputError, LowSolvedWarning
 from .gauge import Gauge, parse_albedo
 from .matching import Matches, first_match, match_pixels
 from .noise import NoiseModel, estimate_noise
 from .options import MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason
-from .refine import Matched, refine_normals
+from .refine import Matched, Refinement, refine_normals
 from .resolve import Resolved, resolve
 from .results import Reconstruction, Timings, low_solved_message, run_statistics
+from .shadows import INLIER_Z
 from .signatures import SignatureSet, compute_signatures
 from .tables import Capture, GaugeTables
 
@@ -123,17 +125,20 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     matches = match_pixels(setup.capture, mask, options, progress, model_scale,
                            origin=(box[0].start, box[1].start))
     solved = matches.row >= 0
-    if options.max_residual is not None:
-        solved &= matches.quality <= options.max_residual
     if options.max_distance is not None:
         solved &= matches.distance <= options.max_distance
+    poor = np.zeros_like(solved)
+    if options.max_residual is not None:
+        poor = solved & ~(matches.quality <= options.max_residual)
+        solved &= ~poor
     normals = np.full((*mask.shape, 3), np.nan, dtype=np.float32)
     normals[solved] = setup.capture.gauge_normals[matches.row[solved]]
     uncertainty = np.full(mask.shape, np.nan, dtype=np.float32)
     offset = np.zeros((int(solved.sum()), 2), dtype=np.float32)
     t0 = time.perf_counter()
-    if options.refine != "none" and solved.any():
-        refined = _refine(setup.capture, gauge, setup.gauge_sig, matches, solved, options)
+    if options.refine != "none" and (solved | poor).any():
+        solved, matches, refined = _refine(setup.capture, gauge, setup.gauge_sig, matches,
+                                           solved, poor, options)
         # The noise's uncertainty or the one the residuals show along the
         # normal's directions, whichever is larger, grown by how much worse than
         # the noise the match explains the pixel (the reduced chi-square's root,
@@ -304,15 +309,46 @@ def _check_inputs(scene, gauge_stack, gauge: Gauge, mask, mode: str):
 
 
 def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Matches,
-            solved: np.ndarray, options: Options):
-    """Refine the solved pixels' normals, weighting each measurement by its noise."""
-    ys, xs = np.nonzero(solved)
+            solved: np.ndarray, poor: np.ndarray, options: Options
+            ) -> tuple[np.ndarray, Matches, Refinement]:
+    """Refine the solved pixels' normals, weighting each measurement by its noise.
+
+    With ``light_subsets``, the ``poor`` pixels (matched, but the table's nearest
+    entry leaves them over ``max_residual``) are refined too, and solved when
+    the robust fit explains its inliers within it on enough lights (as
+    :mod:`colorps.shadows` asks): lights in cast shadow near the table's rim,
+    where the shadow search keeps them, and normals past the gauge's edge,
+    which no entry is near. Their outliers join their dropped lights and their
+    quality is the inliers' residual. Returns the solved pixels, the matches with those changes, and
+    the refinement of the solved pixels (row-major order).
+    """
+    if not options.light_subsets:
+        poor = np.zeros_like(poor)
+    tried = solved | poor
+    ys, xs = np.nonzero(tried)
     matched = Matched(ys, xs, matches.row[ys, xs], matches.bands_used[ys, xs],
                       matches.dropped[ys, xs])
-    return refine_normals(capture.scene_ov, capture.gauge_ov, gauge.normals,
-                          gauge.mask & gauge_sig.valid, matched, capture.model,
-                          capture.gauge_model or capture.model,
-                          model_scale=matches.model_scale, threads=options.threads)
+    refined = refine_normals(capture.scene_ov, capture.gauge_ov, gauge.normals,
+                             gauge.mask & gauge_sig.valid, matched, capture.model,
+                             capture.gauge_model or capture.model,
+                             model_scale=matches.model_scale, outlier_z=INLIER_Z,
+                             threads=options.threads)
+    if not poor.any():
+        return solved, matches, refined
+    dropped = matches.dropped[ys, xs] | refined.outliers
+    lights = capture.images - light_masks.count(dropped)
+    bands = np.array([bin(b).count("1") for b in range(256)])[matches.bands_used[ys, xs]]
+    fitted = refined.inlier_residual / matches.model_scale
+    rescued = poor[ys, xs] & refined.refined & (fitted <= options.max_residual) & \
+        (lights >= MIN_LIGHTS) & (bands * (lights - 1) >= 2)
+    keep = solved[ys, xs] | rescued
+    quality, all_dropped = matches.quality.copy(), matches.dropped.copy()
+    quality[ys[rescued], xs[rescued]] = fitted[rescued]
+    all_dropped[ys[rescued], xs[rescued]] = dropped[rescued]
+    solved = solved.copy()
+    solved[ys[rescued], xs[rescued]] = True
+    kept = Refinement(*(getattr(refined, f.name)[keep] for f in dataclasses.fields(refined)))
+    return solved, dataclasses.replace(matches, quality=quality, dropped=all_dropped), kept
 
 
 def _albedo(scene: np.ndarray, gauge_stack: np.ndarray, solved: np.ndarray,

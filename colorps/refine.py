@@ -79,6 +79,14 @@ class Refinement:
         matched gauge pixel (up to MAX_MOVES + EXTRAPOLATE pixels away).
     refined : (P,) ndarray of bool
         False where the gauge neighbourhood was incomplete (rim, holes).
+    inlier_residual : (P,) ndarray of float32
+        The fit's residual over its inliers: the root of their chi-square per
+        degree of freedom, in noise units before the model scale (NaN where
+        not refined or none is left). Unlike the match's residual it has no
+        share for the table's pixel steps: the fit is continuous.
+    outliers : (P, words) ndarray of uint64
+        Light masks (:mod:`colorps.light_masks`) of the lights with a
+        measurement the fit leaves more than ``outlier_z`` off.
     """
 
     normals: np.ndarray
@@ -86,6 +94,8 @@ class Refinement:
     measured_uncertainty: np.ndarray
     offset: np.ndarray
     refined: np.ndarray
+    inlier_residual: np.ndarray
+    outliers: np.ndarray
 
 
 def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray,
@@ -175,7 +185,7 @@ class Matched(NamedTuple):
 def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np.ndarray,
                    usable: np.ndarray, matched: Matched, scene_noise: NoiseModel,
                    gauge_noise: NoiseModel, *, model_scale: float = 1.0,
-                   threads: int | None = None) -> Refinement:
+                   outlier_z: float = np.inf, threads: int | None = None) -> Refinement:
     """Refine matched normals continuously (see the module docstring).
 
     Parameters
@@ -193,6 +203,10 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
         Weights are 1 / (sigma_S^2 + (|S_k| / |G_k|)^2 sigma_G^2).
     model_scale : float, optional
         The capture's model scale (uncertainties grow with it).
+    outlier_z : float, optional
+        A light with a measurement the robust fit leaves more than this many
+        noise units (times the model scale) off is an outlier
+        (``Refinement.outliers``; ``inlier_residual`` is over the others).
     threads : int, optional
 
     Returns
@@ -221,16 +235,17 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
         np.ascontiguousarray(matched.dropped, dtype=np.uint64).reshape(n, -1))
     out = _refine_kernels.Refined(y=qy.copy(), x=qx.copy(), u=np.zeros(n), v=np.zeros(n),
                                   normal=np.zeros((n, 3)), cov=np.full(n, np.nan),
-                                  fit=np.full(n, np.nan),
-                                  ok=np.zeros(n, dtype=bool))
+                                  fit=np.full(n, np.nan), ok=np.zeros(n, dtype=bool),
+                                  chi2=np.full(n, np.nan),
+                                  outliers=np.zeros_like(pixels.dropped))
     previous = numba.get_num_threads()
     numba.set_num_threads(resolve_threads(threads))
     try:
         _refine_kernels.refine(gauge, pixels, noise_tables(scene_noise, gauge_noise),
-                               ROBUST_LIMIT * model_scale, out)
+                               ROBUST_LIMIT * model_scale, outlier_z * model_scale, out)
     finally:
         numba.set_num_threads(previous)
-    out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok = out
+    out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok, out_chi2, outliers = out
     table_normals = gauge_normals.reshape(-1, 3)[matched.rows]
     normals = np.where(out_ok[:, None], out_normal, table_normals).astype(np.float32)
     sigma = np.sqrt(np.maximum(out_cov / 2.0, 0.0)) * model_scale
@@ -240,4 +255,6 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     # Offsets relative to the matched pixel (the fit may have moved).
     offset = np.stack([out_x - qx + out_u, out_y - qy + out_v], axis=1)
     offset = np.where(out_ok[:, None], offset, 0.0).astype(np.float32)
-    return Refinement(normals, uncertainty, measured.astype(np.float32), offset, out_ok)
+    inlier_residual = np.where(out_ok, np.sqrt(out_chi2), np.nan).astype(np.float32)
+    return Refinement(normals, uncertainty, measured.astype(np.float32), offset, out_ok,
+                      inlier_residual, outliers)
