@@ -148,6 +148,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         uncertainty[solved] = np.fmax(refined.uncertainty,
                                       refined.measured_uncertainty) * misfit
         offset = refined.offset
+        del refined  # its other per-pixel arrays are not needed past here
     t_refine = time.perf_counter() - t0
     albedo = np.full((*mask.shape, scene.shape[3]), np.nan, dtype=np.float32)
     albedo[solved] = _albedo(scene, gauge_stack, solved, matches, offset,

@@ -52,6 +52,9 @@ REFINE_METHODS = ("quadratic", "none")
 #: under 32 lights the normals of pixels with such a shadow went 0.26 -> 0.16
 #: degrees (median), the others' stayed at 0.10; DiLiGenT Ball 1.13 -> 1.12.
 ROBUST_LIMIT = 2.0
+#: Pixels refined at a time: the kernel's per-pixel outputs (about 100 bytes
+#: each) are allocated for a block, not for every pixel of a large scene.
+REFINE_BLOCK = 2 ** 18
 #: For an isotropic 2-D Gaussian with sigma per axis, 68 % of the mass lies
 #: within this many sigma of the centre: sqrt(-2 ln(1 - 0.68)).
 RADIUS_68 = float(np.sqrt(-2.0 * np.log(1.0 - 0.68)))
@@ -159,6 +162,18 @@ def noise_tables(scene: NoiseModel, gauge: NoiseModel) -> _refine_kernels.NoiseT
     return _refine_kernels.NoiseTables(noise, levels, table)
 
 
+class _Part(NamedTuple):
+    """One block's :class:`Refinement` fields, in its order (private)."""
+
+    normals: np.ndarray
+    uncertainty: np.ndarray
+    measured_uncertainty: np.ndarray
+    offset: np.ndarray
+    refined: np.ndarray
+    inlier_residual: np.ndarray
+    outliers: np.ndarray
+
+
 class Matched(NamedTuple):
     """Matched pixels to refine.
 
@@ -220,41 +235,59 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
 
     hg, wg, b, m = gauge_ov.shape
     n = len(matched.rows)
-    qy, qx = np.divmod(np.asarray(matched.rows, dtype=np.int64), wg)
-    near = np.zeros((hg, wg), dtype=bool)
-    near[qy, qx] = True
+    rows = np.asarray(matched.rows, dtype=np.int64)
+    near = np.zeros(hg * wg, dtype=bool)
+    near[rows] = True
     reach = 2 * _refine_kernels.MAX_MOVES + 1  # the fit may move this far
-    needed = binary_dilation(near, np.ones((reach, reach), bool))
+    needed = binary_dilation(near.reshape(hg, wg), np.ones((reach, reach), bool))
     coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
                                            usable, needed)
     gauge = _refine_kernels.GaugeModel(coef, ncoef, window,
                                        np.ascontiguousarray(gauge_ov, dtype=np.float32))
-    pixels = _refine_kernels.Pixels(
-        np.ascontiguousarray(scene_ov, dtype=np.float32), np.asarray(matched.ys, np.int64),
-        np.asarray(matched.xs, np.int64), qy, qx, np.asarray(matched.bands, np.uint8),
-        np.ascontiguousarray(matched.dropped, dtype=np.uint64).reshape(n, -1))
+    scene_ov = np.ascontiguousarray(scene_ov, dtype=np.float32)
+    dropped = np.ascontiguousarray(matched.dropped, dtype=np.uint64).reshape(n, -1)
+    tables = noise_tables(scene_noise, gauge_noise)
+    result = Refinement(np.empty((n, 3), np.float32), np.empty(n, np.float32),
+                        np.empty(n, np.float32), np.empty((n, 2), np.float32),
+                        np.empty(n, bool), np.empty(n, np.float32), np.zeros_like(dropped))
+    previous = numba.get_num_threads()
+    numba.set_num_threads(resolve_threads(threads))
+    try:
+        for first in range(0, n, REFINE_BLOCK):  # bounded per-pixel scratch
+            block = slice(first, min(first + REFINE_BLOCK, n))
+            qy, qx = np.divmod(rows[block], wg)
+            pixels = _refine_kernels.Pixels(
+                scene_ov, np.asarray(matched.ys[block], np.int64),
+                np.asarray(matched.xs[block], np.int64), qy, qx,
+                np.asarray(matched.bands[block], np.uint8), dropped[block])
+            part = _refine_block(gauge, pixels, tables, gauge_normals, model_scale,
+                                 (ROBUST_LIMIT * model_scale, outlier_z * model_scale))
+            for name, values in zip(part._fields, part, strict=True):
+                getattr(result, name)[block] = values
+    finally:
+        numba.set_num_threads(previous)
+    return result
+
+
+def _refine_block(gauge, pixels, tables, gauge_normals: np.ndarray, model_scale: float,
+                  limits: tuple[float, float]) -> _Part:
+    """Run the kernel on one block of pixels; their Refinement fields."""
+    n, qy, qx = len(pixels.y), pixels.qy, pixels.qx
     out = _refine_kernels.Refined(y=qy.copy(), x=qx.copy(), u=np.zeros(n), v=np.zeros(n),
                                   normal=np.zeros((n, 3)), cov=np.full(n, np.nan),
                                   fit=np.full(n, np.nan), ok=np.zeros(n, dtype=bool),
                                   chi2=np.full(n, np.nan),
                                   outliers=np.zeros_like(pixels.dropped))
-    previous = numba.get_num_threads()
-    numba.set_num_threads(resolve_threads(threads))
-    try:
-        _refine_kernels.refine(gauge, pixels, noise_tables(scene_noise, gauge_noise),
-                               ROBUST_LIMIT * model_scale, outlier_z * model_scale, out)
-    finally:
-        numba.set_num_threads(previous)
+    _refine_kernels.refine(gauge, pixels, tables, *limits, out)
     out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok, out_chi2, outliers = out
-    table_normals = gauge_normals.reshape(-1, 3)[matched.rows]
-    normals = np.where(out_ok[:, None], out_normal, table_normals).astype(np.float32)
+    table_normals = gauge_normals[qy, qx]
+    normals = np.where(out_ok[:, None], out_normal, table_normals)
     sigma = np.sqrt(np.maximum(out_cov / 2.0, 0.0)) * model_scale
-    uncertainty = np.where(out_ok, np.degrees(RADIUS_68 * sigma), np.nan).astype(np.float32)
+    uncertainty = np.where(out_ok, np.degrees(RADIUS_68 * sigma), np.nan)
     measured = np.where(out_ok & np.isfinite(out_fit),
                         np.degrees(RADIUS_68 * np.sqrt(np.maximum(out_fit / 2.0, 0.0))), np.nan)
     # Offsets relative to the matched pixel (the fit may have moved).
     offset = np.stack([out_x - qx + out_u, out_y - qy + out_v], axis=1)
-    offset = np.where(out_ok[:, None], offset, 0.0).astype(np.float32)
-    inlier_residual = np.where(out_ok, np.sqrt(out_chi2), np.nan).astype(np.float32)
-    return Refinement(normals, uncertainty, measured.astype(np.float32), offset, out_ok,
-                      inlier_residual, outliers)
+    offset = np.where(out_ok[:, None], offset, 0.0)
+    inlier_residual = np.where(out_ok, np.sqrt(out_chi2), np.nan)
+    return _Part(normals, uncertainty, measured, offset, out_ok, inlier_residual, outliers)
