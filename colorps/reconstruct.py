@@ -119,8 +119,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     run = resolve(options, **changes)
     options = run.options
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
-    whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on
-    scene, mask = np.ascontiguousarray(scene[:, box[0], box[1]]), mask[box]
+    whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on (a view)
+    scene, mask = scene[:, box[0], box[1]], mask[box]
     setup = _setup(scene, gauge_stack, gauge, run, tables)
     matches = match_pixels(setup.capture, mask, options, progress, model_scale,
                            origin=(box[0].start, box[1].start))

@@ -202,7 +202,7 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     bad_any, clipped_any, dark = (np.empty((h, w, b), dtype=bool) for _ in range(3))
     lights = light_masks.empty((h, w), m)
     _pixel_kernels.observation_vectors(
-        np.ascontiguousarray(data, dtype=np.float32), mixing,
+        np.asarray(data, dtype=np.float32), mixing,  # a view of a box is read in place
         np.inf if clip_level is None else float(clip_level), float(min_norm),
         ov, norms, bad_any, clipped_any, dark, lights)
     band_valid = ~bad_any & ~clipped_any & ~dark
