@@ -119,11 +119,10 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     run = resolve(options, **changes)
     options = run.options
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
-    whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on (a view)
-    scene, mask = scene[:, box[0], box[1]], mask[box]
-    setup = _setup(scene, gauge_stack, gauge, run, tables)
-    matches = match_pixels(setup.capture, mask, options, progress, model_scale,
-                           origin=(box[0].start, box[1].start))
+    whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on
+    origin, mask = (box[0].start, box[1].start), mask[box]
+    setup = _setup(scene[:, box[0], box[1]], gauge_stack, gauge, run, tables)
+    matches = match_pixels(setup.capture, mask, options, progress, model_scale, origin=origin)
     solved = matches.row >= 0
     if options.max_distance is not None:
         solved &= matches.distance <= options.max_distance
@@ -151,7 +150,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         del refined  # its other per-pixel arrays are not needed past here
     t_refine = time.perf_counter() - t0
     albedo = np.full((*mask.shape, scene.shape[3]), np.nan, dtype=np.float32)
-    albedo[solved] = _albedo(scene, gauge_stack, solved, matches, offset,
+    albedo[solved] = _albedo(scene, gauge_stack, solved, origin, matches, offset,
                              parse_albedo(gauge.albedo, scene.shape[3]), options.clip_level)
     reason = _reasons(setup.scene_sig, mask, solved, matches.row >= 0, matches.dropped)
     message = low_solved_message(reason, mask, solved)
@@ -353,10 +352,11 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
 
 
 def _albedo(scene: np.ndarray, gauge_stack: np.ndarray, solved: np.ndarray,
-            matches: Matches, offset: np.ndarray, gauge_albedo: np.ndarray,
-            clip_level: float | None) -> np.ndarray:
+            origin: tuple[int, int], matches: Matches, offset: np.ndarray,
+            gauge_albedo: np.ndarray, clip_level: float | None) -> np.ndarray:
     """(P, c) albedo of the solved pixels (method eq. 6, or least squares on the
-    usable measurements), against the gauge at each refined position.
+    usable measurements), against the gauge at each refined position; ``solved``
+    and ``matches`` are of the scene's box from ``origin`` (row, column).
 
     See :func:`colorps._pixel_kernels.albedo`; a pixel's dropped lights are
     left out of its fit.
@@ -365,7 +365,7 @@ def _albedo(scene: np.ndarray, gauge_stack: np.ndarray, solved: np.ndarray,
     out = np.empty((len(ys), scene.shape[3]), dtype=np.float32)
     excluded = np.ascontiguousarray(light_masks.to_bool(matches.dropped[ys, xs],
                                                          scene.shape[0]))
-    _pixel_kernels.albedo(scene, ys, xs, gauge_stack, matches.row[ys, xs],
+    _pixel_kernels.albedo(scene, ys + origin[0], xs + origin[1], gauge_stack, matches.row[ys, xs],
                           np.ascontiguousarray(offset, dtype=np.float32), excluded,
                           np.inf if clip_level is None else float(clip_level),
                           np.asarray(gauge_albedo, dtype=np.float64), MIN_ALBEDO_ENERGY, out)
