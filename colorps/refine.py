@@ -25,6 +25,7 @@ measurements depart from the gauge along the directions that move the normal.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -162,18 +163,6 @@ def noise_tables(scene: NoiseModel, gauge: NoiseModel) -> _refine_kernels.NoiseT
     return _refine_kernels.NoiseTables(noise, levels, table)
 
 
-class _Part(NamedTuple):
-    """One block's :class:`Refinement` fields, in its order (private)."""
-
-    normals: np.ndarray
-    uncertainty: np.ndarray
-    measured_uncertainty: np.ndarray
-    offset: np.ndarray
-    refined: np.ndarray
-    inlier_residual: np.ndarray
-    outliers: np.ndarray
-
-
 class Matched(NamedTuple):
     """Matched pixels to refine.
 
@@ -262,16 +251,16 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
                 np.asarray(matched.bands[block], np.uint8), dropped[block])
             part = _refine_block(gauge, pixels, tables, gauge_normals, model_scale,
                                  (ROBUST_LIMIT * model_scale, outlier_z * model_scale))
-            for name, values in zip(part._fields, part, strict=True):
-                getattr(result, name)[block] = values
+            for field in dataclasses.fields(Refinement):
+                getattr(result, field.name)[block] = getattr(part, field.name)
     finally:
         numba.set_num_threads(previous)
     return result
 
 
 def _refine_block(gauge, pixels, tables, gauge_normals: np.ndarray, model_scale: float,
-                  limits: tuple[float, float]) -> _Part:
-    """Run the kernel on one block of pixels; their Refinement fields."""
+                  limits: tuple[float, float]) -> Refinement:
+    """Run the kernel on one block of pixels; their Refinement."""
     n, qy, qx = len(pixels.y), pixels.qy, pixels.qx
     out = _refine_kernels.Refined(y=qy.copy(), x=qx.copy(), u=np.zeros(n), v=np.zeros(n),
                                   normal=np.zeros((n, 3)), cov=np.full(n, np.nan),
@@ -290,4 +279,4 @@ def _refine_block(gauge, pixels, tables, gauge_normals: np.ndarray, model_scale:
     offset = np.stack([out_x - qx + out_u, out_y - qy + out_v], axis=1)
     offset = np.where(out_ok[:, None], offset, 0.0)
     inlier_residual = np.where(out_ok, np.sqrt(out_chi2), np.nan)
-    return _Part(normals, uncertainty, measured, offset, out_ok, inlier_residual, outliers)
+    return Refinement(normals, uncertainty, measured, offset, out_ok, inlier_residual, outliers)
