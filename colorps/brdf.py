@@ -148,17 +148,20 @@ class BRDF:
             self.roughness == 0.0
 
     def shade(self, normals: np.ndarray, directions: np.ndarray,
-              intensities: np.ndarray) -> np.ndarray:
+              intensities: np.ndarray, views: np.ndarray | None = None) -> np.ndarray:
         """Pixel values of unit-albedo surface points under distant lights.
 
         Parameters
         ----------
         normals : (N, 3) ndarray
-            Unit normals, camera space (view along +z).
+            Unit normals, camera space.
         directions : (m, 3) ndarray
             Unit directions towards the lights.
         intensities : (m, c) ndarray
             Light intensity per band (linear).
+        views : (N, 3) ndarray, optional
+            Each point's unit direction towards the camera (default +z, a view
+            along the optical axis).
 
         Returns
         -------
@@ -167,10 +170,10 @@ class BRDF:
         """
         normals = np.asarray(normals, dtype=np.float64)
         intensities = np.asarray(intensities, dtype=np.float64)
-        cosine, cos_half = _angles(normals, directions)
+        cosine, cos_half = _angles(normals, directions, views)
         diffuse = cosine * np.interp(cosine, DIFFUSE_KNOTS, self.falloff)
         if self.roughness:
-            diffuse = diffuse * oren_nayar_factor(normals, directions, self.roughness)
+            diffuse = diffuse * oren_nayar_factor(normals, directions, self.roughness, views)
         specular = np.broadcast_to(self.specular, (intensities.shape[1],)) \
             if len(self.specular) == 1 else np.array(self.specular)
         if len(specular) != intensities.shape[1]:
@@ -208,11 +211,20 @@ def _half_vectors(directions: np.ndarray) -> np.ndarray:
     return half / np.linalg.norm(half, axis=1, keepdims=True)
 
 
-def _angles(normals: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(m, N) cosines of incidence (0 when unlit) and of the half-vector angle."""
+def _angles(normals: np.ndarray, directions: np.ndarray, views: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(m, N) cosines of incidence (0 when unlit) and of the half-vector angle,
+    for a view along +z or each point's ``views`` (N, 3)."""
     directions = np.asarray(directions, dtype=np.float64)
     cosine = np.maximum(normals @ directions.T, 0.0).T
-    cos_half = np.clip(normals @ _half_vectors(directions).T, 0.0, 1.0).T
+    if views is None:
+        cos_half = np.clip(normals @ _half_vectors(directions).T, 0.0, 1.0).T
+        return cosine, cos_half
+    cos_half = np.empty_like(cosine)
+    for k, light in enumerate(directions):  # (N, 3) half vectors a light at a time
+        half = light + np.asarray(views, dtype=np.float64)
+        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        cos_half[k] = np.clip((normals * half).sum(axis=1), 0.0, 1.0)
     return cosine, cos_half
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from . import __version__
 from .calibrate import calibrate_lights, sphere_from_mask
-from .errors import ColorPSWarning, ExposureWarning, InputError, OutputError
+from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
 from .gauge_check import check_gauge, check_lights
@@ -62,7 +62,7 @@ from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock
 from .tiles import StackFiles, reconstruct_tiled
-from .virtual import virtual_gauge
+from .virtual import view_corrected, virtual_gauge
 
 __all__ = ["calibrate_lights_files", "dask_client", "integrate_file", "reconstruct_files"]
 
@@ -148,13 +148,20 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
                                                                    mask, progress)
     clock.start("reconstruct")
-    if plan.rows is not None:
+    if plan.rows is not None:  # (a fitted finish is refused in tiles)
         with dask_client(scheduler) as client:
             result, preview = reconstruct_tiled(
                 scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
                 progress=progress, return_preview=True)
     else:
         result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
+        if _view_matters(inputs, virtual):
+            if progress:
+                print("matching again, each pixel seen along its own ray (--camera and a "
+                      "finish that depends on the view)", file=sys.stderr)
+            scene = view_corrected(scene, result, stacks.light_set, virtual[0],
+                                   inputs.camera, run.options.clip_level)
+            result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
         step = overview_step(scene.shape[1:3])
         preview = scene[:, ::step, ::step].mean(axis=0)  # what the overview draws
     del scene  # the stack is not needed past here: free it for integration and writing
@@ -256,21 +263,9 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
     return scene, read_image(stacks.scene_paths[0], options.encoding, rows=(0, 1))[1]
 
 
-def _warn_view(camera, shape: tuple[int, int], mask) -> None:
-    """Say that a virtual gauge's finish is rendered for a view along the optical
-    axis, and how far off it the camera's rays through the object go."""
-    ys, xs = np.nonzero(np.ones(shape, bool) if mask is None else mask)
-    if not len(ys):
-        return
-    rays = camera.rays(xs[:: max(1, len(xs) // 10000)], ys[:: max(1, len(ys) // 10000)],
-                       shape)
-    off_axis = float(np.degrees(np.arccos(np.clip(-rays[:, 2], -1.0, 1.0))).max())
-    warnings.warn(f"--camera with --lights: the fitted finish has a highlight or a "
-                  f"roughness, which depend on the view, but the virtual gauge is rendered "
-                  f"for a view along the optical axis; the camera's rays through the object "
-                  f"are up to {off_axis:.1f} degrees off it (normals where the highlight "
-                  "matters may be off by up to about half that)", ColorPSWarning,
-                  stacklevel=3)
+def _view_matters(inputs: CaptureFiles, virtual) -> bool:
+    """A virtual gauge whose fitted finish depends on the view, seen through a lens."""
+    return inputs.camera is not None and virtual is not None and virtual[0].depends_on_view
 
 
 def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mask,
@@ -291,8 +286,6 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress)
-        if inputs.camera is not None and brdf.depends_on_view:
-            _warn_view(inputs.camera, stacks.shape[1:3], mask)
         return gauge, gauge.stack, run, (brdf, fits), checked, scene
     gauge_stack, _ = read_stack(stacks.gauge_paths, encoding, name="gauge", progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")

@@ -6,7 +6,10 @@ finish must be the scene's, or every match is biased, so
 :func:`fit_scene_brdf` fits it from the scene itself: match against a
 Lambertian virtual gauge, fit a :class:`~colorps.brdf.BRDF` to a sample of
 the scene at those normals (:func:`colorps.brdf.fit_brdf`), render, match,
-fit again. :func:`virtual_gauge` is the whole step for a run: the noise
+fit again. The gauge is rendered for a view along the optical axis; through
+a lens, :func:`view_corrected` turns a scene's measurements into those of
+that view, under the fitted finish at the first match's normals, for a
+second match. :func:`virtual_gauge` is the whole step for a run: the noise
 measured on the scene where the options say "auto" (a rendered gauge has no
 scatter to measure), the finish, the rendered gauge, and the settings that
 describe it (:meth:`colorps.resolve.StackModel.rendered`).
@@ -31,7 +34,7 @@ from .options import Options
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 
-__all__ = ["fit_scene_brdf", "virtual_gauge"]
+__all__ = ["fit_scene_brdf", "view_corrected", "virtual_gauge"]
 
 # ---------------------------------------------------------------- tuning
 #: fit_scene_brdf fits this many times: at the normals of a Lambertian gauge,
@@ -45,6 +48,8 @@ MIN_FIT_IMAGES = 6
 #: 1500 against 2500: DiLiGenT Ball 1.13 against 1.15 degrees, the synthetic
 #: glossy, rough and varnished sets as close or closer, the fits 35 % faster.
 FIT_PIXELS = 1500
+#: view_corrected shades this many pixels at a time (bounded temporaries).
+VIEW_CHUNK = 2 ** 15
 
 
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
@@ -204,3 +209,52 @@ def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, ma
                         # Not run-scaled: scaled, every finish's median is about 1.
                         match_residual_median=result.stats.residual_median_noise_units,
                         rms_relative=rms, **fitted.as_dict())
+
+
+def view_corrected(scene: np.ndarray, result, lights: Lights, brdf: BRDF, camera,
+                   clip_level: float | None = None) -> np.ndarray:
+    """The scene as seen along the optical axis, for a finish that depends on the view.
+
+    A virtual gauge is rendered for a view along +z, but through a lens each
+    pixel sees the object along its own ray, and a highlight or a roughness
+    shades it differently. Each solved pixel's measurements get the change
+    from its view to +z under ``brdf``, at its normal and albedo of ``result``:
+    ``albedo * (shade(n, l, +z) - shade(n, l, view))``. Matching the corrected
+    scene again takes the perspective out of the match (a glossy scene seen
+    up to 5.4 degrees off the axis: 1.60 -> 1.41 degrees mean, the
+    orthographic capture's 1.42). Clipped measurements are left as they are.
+
+    Parameters
+    ----------
+    scene : (m, H, W, c) ndarray of float32
+        Linear scene images: corrected in place, and returned.
+    result : Reconstruction
+        The first match against the gauge rendered with ``brdf``.
+    lights : Lights
+    brdf : BRDF
+    camera : Camera
+        The scene's pinhole camera (:mod:`colorps.camera`).
+    clip_level : float, optional
+        Measurements at or above it are clipped.
+
+    Returns
+    -------
+    ndarray
+        ``scene``.
+    """
+    _m, height, width, c = scene.shape
+    ys, xs = np.nonzero(result.solved)
+    intensities = lights.as_lighting(c).colours[:, 0, :]
+    for first in range(0, len(ys), VIEW_CHUNK):
+        y, x = ys[first:first + VIEW_CHUNK], xs[first:first + VIEW_CHUNK]
+        normals = result.normals[y, x].astype(np.float64)
+        views = -camera.rays(x, y, (height, width))
+        change = brdf.shade(normals, lights.directions, intensities) - \
+            brdf.shade(normals, lights.directions, intensities, views)
+        values = scene[:, y, x, :]
+        albedo = np.nan_to_num(result.albedo[y, x], nan=0.0)  # a band without: as it is
+        corrected = np.maximum(values + change * albedo[None], 0.0)
+        if clip_level is not None:
+            corrected = np.where(values >= clip_level, values, corrected)
+        scene[:, y, x, :] = corrected
+    return scene
