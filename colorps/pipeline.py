@@ -148,14 +148,15 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
                                                                    mask, progress)
     clock.start("reconstruct")
-    if plan.rows is not None:  # (a fitted finish is refused in tiles)
+    along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
+    if plan.rows is not None:
         with dask_client(scheduler) as client:
             result, preview = reconstruct_tiled(
                 scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
                 progress=progress, return_preview=True)
     else:
         result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
-        if _view_matters(inputs, virtual):
+        if along_rays:
             if progress:
                 print("matching again, each pixel seen along its own ray (--camera and a "
                       "finish that depends on the view)", file=sys.stderr)
@@ -168,6 +169,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
     report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
+    report["matched_along_rays"] = along_rays
     report["run_seconds"] = clock  # taken when report.json is written, last
     clock.start("writing")
     result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)

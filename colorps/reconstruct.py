@@ -319,8 +319,9 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
     :mod:`colorps.shadows` asks): lights in cast shadow near the table's rim,
     where the shadow search keeps them, and normals past the gauge's edge,
     which no entry is near. Their outliers join their dropped lights and their
-    quality is the inliers' residual. Returns the solved pixels, the matches with those changes, and
-    the refinement of the solved pixels (row-major order).
+    quality is the inliers' residual. Returns the solved pixels, the matches
+    with those changes, and the refinement of the solved pixels (row-major
+    order).
     """
     if not options.light_subsets:
         poor = np.zeros_like(poor)

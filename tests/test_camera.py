@@ -218,6 +218,8 @@ def test_camera_with_a_light_file_matches_again_along_each_ray(tmp_path, capsys)
                      "--camera", "200", "--out", str(folder / "out")]) == 0
         said = capsys.readouterr().err
         assert ("each pixel seen along its own ray" in said) == (name == "glossy"), said
+        report = json.loads((folder / "out" / "report.json").read_text())
+        assert report["matched_along_rays"] == (name == "glossy")
 
 
 def test_a_view_dependent_finish_is_matched_along_each_pixels_ray():
