@@ -392,7 +392,7 @@ def read_image(path, encoding: Encoding = "auto", *,
     names = [names[k] for k in keep]
     srgb = encoding == "srgb" or (encoding == "auto" and stored in _INTEGER_TYPES)
     if as_type != "float":
-        return decoding_table(as_type, "srgb" if srgb else "linear")[pixels], names
+        return decoding_table(_MAX_CODE[as_type], "srgb" if srgb else "linear")[pixels], names
     pixels = np.asarray(pixels, dtype=np.float32)
     if srgb:
         pixels = srgb_decode(pixels)

@@ -30,7 +30,6 @@ import numpy as np
 
 from . import _pixel_kernels, light_masks
 from ._checks import check_stack
-from ._config import MIN_LIGHTS
 from .errors import GaugeWarning, InputError, LowSolvedWarning
 from .gauge import Gauge, parse_albedo
 from .matching import Matches, first_match, match_pixels
@@ -40,7 +39,7 @@ from .reasons import Reason
 from .refine import Matched, Refinement, refine_normals
 from .resolve import Resolved, resolve
 from .results import Reconstruction, Timings, low_solved_message, run_statistics
-from .shadows import INLIER_Z
+from .shadows import INLIER_Z, fixes_normal
 from .signatures import SignatureSet, compute_signatures
 from .tables import Capture, GaugeTables
 
@@ -341,7 +340,7 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
     bands = np.array([bin(b).count("1") for b in range(256)])[matches.bands_used[ys, xs]]
     fitted = refined.inlier_residual / matches.model_scale
     rescued = poor[ys, xs] & refined.refined & (fitted <= options.max_residual) & \
-        (lights >= MIN_LIGHTS) & (bands * (lights - 1) >= 2)
+        fixes_normal(bands, lights)
     keep = solved[ys, xs] | rescued
     quality, all_dropped = matches.quality.copy(), matches.dropped.copy()
     quality[ys[rescued], xs[rescued]] = fitted[rescued]

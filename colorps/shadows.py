@@ -41,7 +41,7 @@ from .residuals import MODEL_FLOOR, light_residuals
 from .tables import Capture
 
 __all__ = ["ACCEPTED", "COARSE_STEP", "DARK_FRACTION", "INLIER_Z", "MINOR_FRACTION", "ROUNDS",
-           "solve_shadowed"]
+           "fixes_normal", "solve_shadowed"]
 
 # ---------------------------------------------------------------- tuning
 #: A light is taken as not reaching a pixel, to start with, when the pixel's
@@ -64,6 +64,14 @@ COARSE_STEP = 4
 ROUNDS = 2
 #: Pixels handled at a time (bounds the (P, B, m) temporaries).
 CHUNK_PIXELS = 16384
+
+
+def fixes_normal(bands, lights) -> np.ndarray:
+    """Whether a pixel's ``bands`` usable bands over ``lights`` lights (counts,
+    broadcast) still fix a normal: at least MIN_LIGHTS lights and
+    bands x (lights - 1) >= 2."""
+    lights = np.asarray(lights)
+    return (lights >= MIN_LIGHTS) & (np.asarray(bands) * (lights - 1) >= 2)
 
 
 def solve_shadowed(capture: Capture, state, limit: float, model_scale: float) -> int:
@@ -134,8 +142,7 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float,
     second = np.where(good[0] & good[1], more, np.where(good[0] | good[1], good[1], closer))
     rows, keep, z, quality, distance = (np.where(second.reshape((-1,) + (1,) * (a.ndim - 1)),
                                                  b, a) for a, b in zip(*fits))
-    enough = (keep.sum(axis=1) >= MIN_LIGHTS) & \
-        (bands.sum(axis=1) * (keep.sum(axis=1) - 1) >= 2)
+    enough = fixes_normal(bands.sum(axis=1), keep.sum(axis=1))
     # A match on the table's rim may stand for a normal beyond the gauge, whose
     # dim lights near the terminator the rim cannot explain; dropping them would
     # hide that. On the rim, every light dropped as darker must have been

@@ -16,8 +16,8 @@ import numpy as np
 
 __all__ = ["TABLE_TYPES", "decoding_table", "srgb_decode"]
 
-#: Largest code of the pixel types decoded by table (OpenImageIO's type names).
-TABLE_TYPES = {"uint8": 255, "uint16": 65535}
+#: Pixel types decoded by table (OpenImageIO's type names).
+TABLE_TYPES = ("uint8", "uint16")
 
 
 def srgb_decode(values) -> np.ndarray:
@@ -29,12 +29,13 @@ def srgb_decode(values) -> np.ndarray:
 
 
 @lru_cache(maxsize=len(TABLE_TYPES) * 2)
-def decoding_table(pixel_type: str, encoding: str) -> np.ndarray:
-    """Linear float32 value of every code of ``pixel_type``, read as ``encoding``.
+def decoding_table(top: int, encoding: str) -> np.ndarray:
+    """Linear float32 value of every code 0 .. ``top``, read as ``encoding``.
 
     Parameters
     ----------
-    pixel_type : {"uint8", "uint16"}
+    top : int
+        The pixel type's largest code (255, 65535).
     encoding : {"linear", "srgb"}
         "linear": code times 1 / top in float32, as OpenImageIO converts;
         "srgb": that value decoded by :func:`srgb_decode`.
@@ -47,11 +48,10 @@ def decoding_table(pixel_type: str, encoding: str) -> np.ndarray:
     Examples
     --------
     >>> from colorps.transfer import decoding_table
-    >>> table = decoding_table("uint8", "srgb")
+    >>> table = decoding_table(255, "srgb")
     >>> table.shape, float(table[0]), float(table[255])
     ((256,), 0.0, 1.0)
     """
-    top = TABLE_TYPES[pixel_type]
     values = np.arange(top + 1, dtype=np.float32) * np.float32(1.0 / top)
     table = srgb_decode(values) if encoding == "srgb" else values
     table.setflags(write=False)
