@@ -132,7 +132,8 @@ class ReconstructionStats:
         Median residual of the first matches when above 1 (model mismatch
         every pixel shares); residuals are divided by it.
     residual_median, residual_p95 : float or None
-        Of the matched pixels' ``quality``.
+        Of the matched pixels' ``quality``; ``as_dict`` adds
+        ``residual_median_noise_units``, the median before the model scale.
     max_residual, max_distance : float or None
     gauge_usable_fraction : float
         Fraction of the gauge mask with every band usable.
@@ -185,8 +186,10 @@ class ReconstructionStats:
             self.residual_median * self.model_scale
 
     def as_dict(self) -> dict:
-        """Nested plain dicts and lists (JSON-ready)."""
-        return dataclasses.asdict(self)
+        """Nested plain dicts and lists (JSON-ready), with
+        ``residual_median_noise_units``."""
+        return {**dataclasses.asdict(self),
+                "residual_median_noise_units": self.residual_median_noise_units}
 
 
 @dataclass(frozen=True)

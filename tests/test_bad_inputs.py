@@ -128,6 +128,40 @@ def test_small_solved_fraction_warns_in_summary_and_report(capture, tmp_path, ca
     assert any("were solved" in w for w in report["statistics"]["warnings"])
 
 
+@pytest.mark.parametrize("centre, warned", [((42, 42), False), ((46, 2), True)])
+def test_a_mask_drawn_for_another_object(capture, tmp_path, capsys, centre, warned):
+    """A mask drawn for another object (another capture's, a disc elsewhere): its
+    pixels off this object are refused as too dark and counted in report.json, never
+    given normals; the ones on it are right; when most are off, the run says so."""
+    import json
+
+    from colorps import angular_error
+
+    folder, _ = capture
+    scene_mask = read_image(folder / "mask.png")[0][..., 0] > 0.5
+    truth = read_image(folder / "truth_normal.exr")[0]
+    yy, xx = np.mgrid[:48, :48]
+    wrong = (yy - centre[0]) ** 2 + (xx - centre[1]) ** 2 < 18 ** 2
+    write_image(tmp_path / "wrong.png", np.repeat(wrong[..., None], 3, axis=2).astype(float),
+                dtype="uint8")
+    out = tmp_path / "out"
+    assert main(args_for(capture, out, None, None, "--mask", str(tmp_path / "wrong.png"),
+                         "--no-height")) == 0
+    assert ("were solved (mostly 'too dark'" in capsys.readouterr().err) == warned
+    normals = read_image(out / "normal.exr")[0]
+    solved = np.isfinite(normals).all(axis=-1)
+    off, on = wrong & ~scene_mask, wrong & scene_mask
+    assert off.sum() > 100 and on.sum() > 50
+    assert not solved[off].any()
+    report = json.loads((out / "report.json").read_text())
+    stats = report["statistics"]
+    assert stats["pixels_by_reason"]["too dark"] == off.sum()
+    assert stats["solved"] == solved.sum() == on.sum()
+    assert stats["residual_median_noise_units"] == pytest.approx(
+        stats["residual_median"] * stats["model_scale"])
+    assert np.median(angular_error(normals[on], truth[on])) < 2.0
+
+
 # ------------------------------------------------------------------ memory
 def hostile_exr(path: Path, claims: int) -> None:
     """A small valid EXR whose header then claims ``claims`` x ``claims`` pixels."""
