@@ -27,8 +27,8 @@ from pathlib import Path
 
 #: (module, function, label) of the steps timed, in the order they run.
 PHASES = (
-    ("colorps.io", "read_stack", "read images"),
-    ("colorps.gauge", "find_sphere", "find the gauge sphere"),
+    ("colorps.pipeline", "read_stack", "read images"),
+    ("colorps.pipeline", "find_sphere", "find the gauge sphere"),
     ("colorps.reconstruct", "_setup", "signatures, noise model"),
     ("colorps.reconstruct", "match_pixels", "matching (tables, grids, lookups, subsets)"),
     ("colorps.reconstruct", "_refine", "sub-pixel refinement"),

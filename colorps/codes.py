@@ -15,6 +15,8 @@ __all__ = ["CODE_STEPS", "code_range", "decode", "encode"]
 
 #: Steps between the lowest and the highest value (code 0 is "no value").
 CODE_STEPS = 65534
+#: Values encoded at a time (bounded temporaries, and they stay in the caches).
+ENCODE_CHUNK = 1 << 16
 
 
 def code_range(values) -> tuple[float, float]:
@@ -28,10 +30,17 @@ def code_range(values) -> tuple[float, float]:
 
 
 def encode(values, lo: float, hi: float) -> np.ndarray:
-    """uint16 codes of ``values`` (NaN -> 0)."""
-    v = np.asarray(values, dtype=np.float64)
-    scaled = np.clip((v - lo) / (hi - lo), 0.0, 1.0) * CODE_STEPS + 1.0
-    return np.where(np.isfinite(v), np.rint(np.nan_to_num(scaled, nan=0.0)), 0.0).astype(np.uint16)
+    """uint16 codes of ``values`` (NaN -> 0), in pieces of ENCODE_CHUNK values
+    (float64 temporaries of a 16-megapixel map took gigabytes)."""
+    v = np.asarray(values)
+    codes = np.empty(v.shape, dtype=np.uint16)
+    flat, flat_codes = v.reshape(-1), codes.reshape(-1)
+    for start in range(0, flat.size, ENCODE_CHUNK):
+        piece = flat[start:start + ENCODE_CHUNK].astype(np.float64)
+        scaled = np.clip((piece - lo) / (hi - lo), 0.0, 1.0) * CODE_STEPS + 1.0
+        flat_codes[start:start + ENCODE_CHUNK] = np.where(
+            np.isfinite(piece), np.rint(np.nan_to_num(scaled, nan=0.0)), 0.0)
+    return codes
 
 
 def decode(codes, lo: float, hi: float) -> np.ndarray:

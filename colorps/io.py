@@ -478,7 +478,8 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
         Destination; the format follows the extension.
     image : (H, W) or (H, W, c) array_like
         Values as they should be stored (integer types expect 0..1, already
-        encoded: see :func:`srgb_encode`).
+        encoded: see :func:`srgb_encode`), or an array of the file's integer
+        pixel type (uint8, uint16), whose codes are written as they are.
     channel_names : sequence of str, optional
     dtype : {"float", "half", "uint8", "uint16"}, optional
         Pixel type in the file.
@@ -491,7 +492,9 @@ def write_image(path, image, *, channel_names: Sequence[str] | None = None,
     path = Path(path)
     if dtype not in ("float", "half", "uint8", "uint16"):
         raise InputError(f"dtype: expected 'float', 'half', 'uint8' or 'uint16', got {dtype!r}")
-    data = np.asarray(image, dtype=np.float32)
+    data = np.asarray(image)
+    if data.dtype != np.dtype(dtype if dtype in ("uint8", "uint16") else np.float32):
+        data = data.astype(np.float32)  # codes are written as they are; values as 0..1
     if data.ndim == 2:
         data = data[..., np.newaxis]
     h, w, c = data.shape

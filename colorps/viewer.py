@@ -41,6 +41,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
 import shutil
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
@@ -135,8 +136,9 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     data.mkdir(exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".png-", dir=data))
     try:
-        # OpenImageIO's PNG encoder releases the GIL: the maps encode in parallel.
-        with ThreadPoolExecutor() as pool:
+        # OpenImageIO's PNG encoder releases the GIL: the maps encode in parallel,
+        # one per core (each holds its codes and bytes).
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             for k, step in enumerate(steps):
                 pending = {name: pool.submit(_png_pair, values[::step, ::step], ranges[name],
                                              scratch / f"{k}-{name}")
@@ -172,8 +174,7 @@ def _png_pair(values: np.ndarray, ranges, prefix: Path) -> list[str]:
     urls = []
     for part, byte in (("high", codes >> 8), ("low", codes & 0xFF)):
         path = write_image(prefix.with_name(f"{prefix.name}-{part}.png"),
-                           byte.astype(np.float32) / 255.0,
-                           dtype="uint8")
+                           byte.astype(np.uint8), dtype="uint8")
         urls.append("data:image/png;base64," + base64.b64encode(path.read_bytes()).decode())
     return urls
 
