@@ -173,6 +173,8 @@ COLOUR_MAP_STOPS = ((68, 1, 84), (71, 45, 123), (59, 82, 139), (44, 114, 142), (
 #: Colours of lights.png and the viewer for 1, 2 and 3 or more dropped lights
 #: (8-bit sRGB; none dropped: black).
 DROPPED_COLOURS = ((90, 200, 255), (255, 170, 0), (255, 40, 200))
+#: Pixels drawn at a time (bounded temporaries on large maps).
+PICTURE_CHUNK = 1 << 16
 #: Key strip under a map picture: text height as a fraction of the picture's
 #: width, within these bounds (pixels).
 KEY_TEXT_FRACTION = 1 / 40
@@ -226,7 +228,13 @@ UNCERTAINTY_SCALE = ColourScale("uncertainty: 68 % radius of the normal (degrees
 
 def colour_mapped(values, scale: ColourScale) -> np.ndarray:
     """(H, W, 3) float32 sRGB picture of a map through the colour map; NaN is black."""
-    return _colours_at(scale.position(values))
+    values = np.asarray(values)
+    out = np.empty((*values.shape, 3), dtype=np.float32)
+    flat, flat_out = values.reshape(-1), out.reshape(-1, 3)
+    for start in range(0, flat.size, PICTURE_CHUNK):  # bounded temporaries
+        piece = slice(start, start + PICTURE_CHUNK)
+        flat_out[piece] = _colours_at(scale.position(flat[piece]))
+    return out
 
 
 def _colours_at(position: np.ndarray) -> np.ndarray:
@@ -309,21 +317,32 @@ def legend(entries, width: int):
 def with_key(picture, key) -> np.ndarray:
     """``picture`` (H, W, 3) at its own pixels in the top-left corner, and below
     it a white strip with ``key`` = (width, height, draw) drawn in it (the
-    figure is widened when the key is wider than the picture)."""
+    figure is widened when the key is wider than the picture). ``picture`` is
+    sRGB 0..1; the figure is returned as (H', W', 3) uint8 sRGB codes."""
     import OpenImageIO as oiio
 
-    picture = np.asarray(picture, dtype=np.float32)
-    h, w = picture.shape[:2]
+    h, w = np.shape(picture)[:2]
     key_width, key_height, draw = key
     margin = _key_text_px(w) // 2
-    canvas = np.ones((h + key_height + 3 * margin, max(w, key_width + 2 * margin), 3),
-                     dtype=np.float32)
-    canvas[:h, :w] = picture
+    canvas = np.full((h + key_height + 3 * margin, max(w, key_width + 2 * margin), 3), 255,
+                     dtype=np.uint8)  # 8-bit throughout: a float canvas took 4 copies
+    canvas[:h, :w] = _codes(picture)
     buf = oiio.ImageBuf(canvas)
     draw(buf, margin, h + 2 * margin)
     if buf.has_error:
         raise RuntimeError(f"OpenImageIO could not draw a key: {buf.geterror()}")
-    return np.clip(buf.get_pixels(oiio.FLOAT), 0.0, 1.0)
+    return buf.get_pixels(oiio.UINT8)
+
+
+def _codes(picture) -> np.ndarray:
+    """8-bit codes of a 0..1 picture (rounded), in pieces of PICTURE_CHUNK rows' worth."""
+    picture = np.asarray(picture)
+    out = np.empty(picture.shape, dtype=np.uint8)
+    rows = max(1, PICTURE_CHUNK // max(1, picture[0].size))
+    for start in range(0, picture.shape[0], rows):
+        piece = np.asarray(picture[start:start + rows], dtype=np.float32)
+        out[start:start + rows] = np.rint(np.clip(piece, 0.0, 1.0) * 255.0)
+    return out
 
 
 def dropped_picture(count) -> np.ndarray:

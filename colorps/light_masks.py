@@ -67,9 +67,10 @@ def from_bool(flags: np.ndarray) -> np.ndarray:
 def to_bool(masks: np.ndarray, m: int) -> np.ndarray:
     """(..., words) masks -> (..., m) bool: image i in each mask."""
     masks = np.asarray(masks, dtype=np.uint64)
-    i = np.arange(m)
-    return (masks[..., i // WORD_BITS] >> (i % WORD_BITS).astype(np.uint64)
-            & np.uint64(1)) != 0
+    out = np.empty((*masks.shape[:-1], m), dtype=bool)
+    for i in range(m):  # one image at a time: (..., m) uint64 temporaries took gigabytes
+        out[..., i] = masks[..., i // WORD_BITS] & np.uint64(1 << (i % WORD_BITS)) != 0
+    return out
 
 
 def count(masks: np.ndarray) -> np.ndarray:
