@@ -18,14 +18,18 @@ def _invalid(v):
 
 
 @njit(cache=True, parallel=True)
-def observation_vectors(stack, mixing, clip_level, min_norm,
-                        ov, norms, band_invalid, band_clipped, band_dark, clipped_lights):
+def observation_vectors(stack, first_row, first_col, mixing, clip_level, min_norm,
+                        ov, norms, band_invalid, band_clipped, band_dark, clipped_lights,
+                        invalid_lights):
     """Fill the observation vectors of every pixel, their norms and their flags.
 
     Parameters
     ----------
     stack : (m, H, W, c) float32
         Linear measurements.
+    first_row, first_col : int
+        Where the box of the outputs begins in the stack (the box is read in
+        place: no copy of it is made).
     mixing : (B, c) float32
         Band b's measurement is sum_k mixing[b, k] x (measurement of channel k;
         0 where invalid): the identity in colour mode, a luminance row or a
@@ -34,21 +38,23 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
     clip_level, min_norm : float
         ``np.inf`` for no clipping.
 
-    Outputs (written in place)
-    --------------------------
-    ov : (H, W, B, m) float32
-    norms : (H, W, B) float32
-    band_invalid, band_clipped, band_dark : (H, W, B) bool
-    clipped_lights : (H, W, words) uint64
+    Outputs (written in place), of the box's h x w pixels
+    -----------------------------------------------------
+    ov : (h, w, B, m) float32
+    norms : (h, w, B) float32
+    band_invalid, band_clipped, band_dark : (h, w, B) bool
+    clipped_lights, invalid_lights : (h, w, words) uint64
         Light masks (:mod:`colorps.light_masks`): image i set when a source
-        measurement of it is clipped.
+        measurement of it is clipped, or invalid.
     """
-    m, h, w, c = stack.shape
+    m, c = stack.shape[0], stack.shape[3]
+    h, w = ov.shape[0], ov.shape[1]
     n_bands = mixing.shape[0]
     for y in prange(h):
         for x in range(w):
             for word in range(clipped_lights.shape[2]):
                 clipped_lights[y, x, word] = 0
+                invalid_lights[y, x, word] = 0
             for b in range(n_bands):
                 invalid = False
                 clipped = False
@@ -59,12 +65,13 @@ def observation_vectors(stack, mixing, clip_level, min_norm,
                         weight = mixing[b, k]
                         if weight == 0.0:
                             continue
-                        v = stack[i, y, x, k]
+                        v = stack[i, first_row + y, first_col + x, k]
                         if v >= clip_level:  # +Inf too: clipped and invalid
                             clipped = True
                             clipped_lights[y, x, i >> 6] |= np.uint64(1) << np.uint64(i & 63)
                         if _invalid(v):
                             invalid = True
+                            invalid_lights[y, x, i >> 6] |= np.uint64(1) << np.uint64(i & 63)
                             continue
                         value += weight * v
                     ov[y, x, b, i] = value
@@ -96,7 +103,7 @@ def unit_signatures(ov, band_valid, signatures):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albedo,
+def albedo(values, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albedo,
            min_energy, out):
     """Per-band albedo of pixels (ys, xs) matched to gauge pixels ``rows``.
 
@@ -108,13 +115,16 @@ def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albed
 
     Parameters
     ----------
-    scene : (m, H, W, c) float32
+    values : (H, W, c, m) float32
+        The scene's measurements, per pixel (its observation vectors in colour
+        mode).
     ys, xs, rows : (P,) int64
-        Pixel coordinates and flat gauge pixel indices (row-major).
+        Pixel coordinates in ``values`` and flat gauge pixel indices (row-major).
     gauge : (m, Hg, Wg, c) float32
     offset : (P, 2) float32
     excluded : (P, m) bool
-        Measurements left out (lights dropped from the pixel's match).
+        Measurements left out (lights dropped from the pixel's match, and
+        those with an invalid value).
     clip_level : float
         ``np.inf`` for no clipping.
     gauge_albedo : (c,) float64
@@ -143,7 +153,7 @@ def albedo(scene, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albed
                 top = gauge[i, y0, x0, k] * (1 - fx) + gauge[i, y0, x1, k] * fx
                 bottom = gauge[i, y1, x0, k] * (1 - fx) + gauge[i, y1, x1, k] * fx
                 g = np.float64(top * (1 - fy) + bottom * fy)
-                s = np.float64(scene[i, ys[p], xs[p], k])
+                s = np.float64(values[ys[p], xs[p], k, i])
                 gauge_energy += g * g
                 if _invalid(s) or s >= clip_level or excluded[p, i]:
                     all_usable = False

@@ -154,18 +154,13 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
             result, preview = reconstruct_tiled(
                 scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
                 progress=progress, return_preview=True)
+        del scene  # not needed past here: free it for integration and writing
     else:
-        result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
-        if along_rays:
-            if progress:
-                print("matching again, each pixel seen along its own ray (--camera and a "
-                      "finish that depends on the view)", file=sys.stderr)
-            scene = view_corrected(scene, result, stacks.light_set, virtual[0],
-                                   inputs.camera, run.options.clip_level)
-            result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
-        step = overview_step(scene.shape[1:3])
-        preview = scene[:, ::step, ::step].mean(axis=0)  # what the overview draws
-    del scene  # the stack is not needed past here: free it for integration and writing
+        handed = [scene]
+        del scene  # held by ``handed`` alone, so that the reconstruction can free it
+        result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
+                                             (stacks.light_set, virtual, inputs.camera),
+                                             progress)
     _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
     report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
@@ -265,6 +260,33 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
     return scene, read_image(stacks.scene_paths[0], options.encoding, rows=(0, 1))[1]
 
 
+def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, mask,
+                       along_rays: bool, view, progress: bool) -> tuple[Reconstruction,
+                                                                       np.ndarray]:
+    """Reconstruct the scene stack ``handed`` holds (its only reference) untiled;
+    the result and the overview's preview of the scene.
+
+    Without ``along_rays`` the stack goes to :func:`reconstruct` as its only
+    reference, which lets it go once it has the observation vectors. With it
+    (``view``: the light file's lights, the virtual gauge, the camera) the
+    scene is matched once more, seen along each pixel's ray."""
+    step = overview_step(handed[0].shape[1:3])
+    if not along_rays:
+        preview = handed[0][:, ::step, ::step].mean(axis=0)  # what the overview draws
+        return reconstruct(handed.pop(), gauge_stack, gauge, run, mask=mask,
+                           progress=progress), preview
+    scene = handed.pop()
+    result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
+    if progress:
+        print("matching again, each pixel seen along its own ray (--camera and a "
+              "finish that depends on the view)", file=sys.stderr)
+    light_set, virtual, camera = view
+    scene = view_corrected(scene, result, light_set, virtual[0], camera,
+                           run.options.clip_level)
+    result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
+    return result, scene[:, ::step, ::step].mean(axis=0)
+
+
 def _view_matters(inputs: CaptureFiles, virtual) -> bool:
     """A virtual gauge whose fitted finish depends on the view, seen through a lens."""
     return inputs.camera is not None and virtual is not None and virtual[0].depends_on_view
@@ -348,6 +370,7 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
     run integrates in a thread while the maps are written (the solver and
     OpenImageIO's writers release the GIL): the two overlap."""
     tiled = plan.rows is not None
+    release_freed_memory()  # the reconstruction's temporaries, before the writers'
 
     def with_height(result: Reconstruction) -> Reconstruction:
         t0 = time.perf_counter()

@@ -33,6 +33,7 @@ from ._checks import check_stack
 from .errors import GaugeWarning, InputError, LowSolvedWarning
 from .gauge import Gauge, parse_albedo
 from .matching import Matches, first_match, match_pixels
+from .memory import release_freed_memory
 from .noise import NoiseModel, estimate_noise
 from .options import MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason
@@ -51,6 +52,9 @@ GAUGE_USABLE_WARNING = 0.8
 #: Least squares albedo (some measurements unusable) needs the usable ones to
 #: carry at least this fraction of the gauge OV's energy; else NaN.
 MIN_ALBEDO_ENERGY = 0.01
+#: Mono mode takes the albedo's measurements from the stack in pieces of this
+#: many rows (each transposed to pixel-major order, a bounded copy).
+ALBEDO_ROWS = 256
 
 
 def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | None = None,
@@ -100,8 +104,13 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     gauge table (built once per band subset, when first needed), provided they
     still fix a normal (bands x (m - 1) >= 2). Every band then gets its albedo
     from the found normal: eq. 6 when all its measurements are usable, else the
-    least-squares scale over its usable (finite, non-negative, unclipped)
-    measurements.
+    least-squares scale over its usable (unclipped) measurements, leaving out
+    the lights with an invalid (NaN, Inf, negative) measurement in any band.
+
+    In colour mode the albedo is taken from the observation vectors, and
+    ``scene`` is not referenced past them: a caller that holds no reference of
+    its own (as :func:`colorps.pipeline.reconstruct_files` does) gets the
+    stack's memory back for the matching.
 
     Examples
     --------
@@ -120,8 +129,14 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
     whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on
     origin, mask = (box[0].start, box[1].start), mask[box]
-    setup = _setup(scene[:, box[0], box[1]], gauge_stack, gauge, run, tables)
+    setup = _setup(scene, box, gauge_stack, gauge, run, tables)
+    m, _, _, c = scene.shape
+    # In colour mode the OVs hold every measurement: the stack is let go.
+    stack_box = None if options.mode == "colour" else scene[:, box[0], box[1]]
+    del scene
+    release_freed_memory()  # each step's temporaries, before the next step's
     matches = match_pixels(setup.capture, mask, options, progress, model_scale, origin=origin)
+    release_freed_memory()
     solved = matches.row >= 0
     if options.max_distance is not None:
         solved &= matches.distance <= options.max_distance
@@ -147,16 +162,16 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
                                       refined.measured_uncertainty) * misfit
         offset = refined.offset
         del refined  # its other per-pixel arrays are not needed past here
+        release_freed_memory()
     t_refine = time.perf_counter() - t0
-    albedo = np.full((*mask.shape, scene.shape[3]), np.nan, dtype=np.float32)
-    albedo[solved] = _albedo(scene, gauge_stack, solved, origin, matches, offset,
-                             parse_albedo(gauge.albedo, scene.shape[3]), options.clip_level)
+    albedo = np.full((*mask.shape, c), np.nan, dtype=np.float32)
+    albedo[solved] = _albedo(setup.scene_sig, stack_box, gauge_stack, solved, matches, offset,
+                             parse_albedo(gauge.albedo, c), options.clip_level)
     reason = _reasons(setup.scene_sig, mask, solved, matches.row >= 0, matches.dropped)
     message = low_solved_message(reason, mask, solved)
     if message:
         setup.said.append(message)
         warnings.warn(message, LowSolvedWarning, stacklevel=2)
-    m, _, _, c = scene.shape
     seconds = Timings(signatures=setup.seconds, grid=matches.seconds_grid,
                       lookup=matches.seconds_lookup, refine=t_refine,
                       total=time.perf_counter() - t_start)
@@ -193,7 +208,7 @@ def first_residuals(scene, gauge_stack, gauge: Gauge, options: Options | Resolve
     run = resolve(options)
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask,
                                              run.options.mode)
-    setup = _setup(scene, gauge_stack, gauge, run, tables)
+    setup = _setup(scene, None, gauge_stack, gauge, run, tables)
     state = first_match(setup.capture, mask, run.options, progress=False)
     return state.quality[state.row >= 0]
 
@@ -211,15 +226,16 @@ class _Setup:
     seconds: float
 
 
-def _setup(scene, gauge_stack, gauge: Gauge, run: Resolved, tables=None) -> _Setup:
-    """Signatures of both stacks, the noise model, and the capture to match."""
+def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) -> _Setup:
+    """Signatures of both stacks (the scene's of its ``box``, None: all), the
+    noise model, and the capture to match."""
     options = run.options
     m = scene.shape[0]
     t0 = time.perf_counter()
     min_norm = dark_threshold(options.dark_level, m)
     signature_options = dict(band=options.band, colourspace=options.colourspace,
                              min_norm=min_norm, clip_level=options.clip_level)
-    scene_sig = compute_signatures(scene, options.mode, **signature_options)
+    scene_sig = compute_signatures(scene, options.mode, box=box, **signature_options)
     gauge_clip, gauge_dark = run.gauge_levels
     signature_options.update(clip_level=gauge_clip, min_norm=dark_threshold(gauge_dark, m))
     gauge_sig = compute_signatures(gauge_stack, options.mode, **signature_options)
@@ -351,24 +367,33 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
     return solved, dataclasses.replace(matches, quality=quality, dropped=all_dropped), kept
 
 
-def _albedo(scene: np.ndarray, gauge_stack: np.ndarray, solved: np.ndarray,
-            origin: tuple[int, int], matches: Matches, offset: np.ndarray,
+def _albedo(scene_sig: SignatureSet, stack_box: np.ndarray | None, gauge_stack: np.ndarray,
+            solved: np.ndarray, matches: Matches, offset: np.ndarray,
             gauge_albedo: np.ndarray, clip_level: float | None) -> np.ndarray:
     """(P, c) albedo of the solved pixels (method eq. 6, or least squares on the
-    usable measurements), against the gauge at each refined position; ``solved``
-    and ``matches`` are of the scene's box from ``origin`` (row, column).
+    usable measurements), against the gauge at each refined position.
 
-    See :func:`colorps._pixel_kernels.albedo`; a pixel's dropped lights are
-    left out of its fit.
+    The measurements are the colour-mode OVs of ``scene_sig``, or, in mono
+    mode, those of ``stack_box`` (the scene's box), ALBEDO_ROWS rows at a
+    time. See :func:`colorps._pixel_kernels.albedo`; a pixel's dropped lights
+    and those with an invalid measurement are left out of its fit.
     """
     ys, xs = np.nonzero(solved)
-    out = np.empty((len(ys), scene.shape[3]), dtype=np.float32)
-    excluded = np.ascontiguousarray(light_masks.to_bool(matches.dropped[ys, xs],
-                                                         scene.shape[0]))
-    _pixel_kernels.albedo(scene, ys + origin[0], xs + origin[1], gauge_stack, matches.row[ys, xs],
-                          np.ascontiguousarray(offset, dtype=np.float32), excluded,
-                          np.inf if clip_level is None else float(clip_level),
-                          np.asarray(gauge_albedo, dtype=np.float64), MIN_ALBEDO_ENERGY, out)
+    m = gauge_stack.shape[0]
+    out = np.empty((len(ys), gauge_stack.shape[3]), dtype=np.float32)
+    excluded = light_masks.to_bool(matches.dropped[ys, xs] | scene_sig.invalid_lights[ys, xs], m)
+    pieces = [(0, solved.shape[0])] if stack_box is None else \
+        [(row, row + ALBEDO_ROWS) for row in range(0, solved.shape[0], ALBEDO_ROWS)]
+    for first, last in pieces:
+        pick = slice(*np.searchsorted(ys, (first, last)))  # ys ascend
+        values = scene_sig.ov if stack_box is None else \
+            np.ascontiguousarray(stack_box[:, first:last].transpose(1, 2, 3, 0))
+        _pixel_kernels.albedo(values, ys[pick] - first, xs[pick], gauge_stack,
+                              matches.row[ys[pick], xs[pick]],
+                              np.ascontiguousarray(offset[pick], dtype=np.float32),
+                              excluded[pick], np.inf if clip_level is None else float(clip_level),
+                              np.asarray(gauge_albedo, dtype=np.float64), MIN_ALBEDO_ENERGY,
+                              out[pick])
     return out
 
 

@@ -59,6 +59,9 @@ class SignatureSet:
         Light masks (:mod:`colorps.light_masks`) of the images with a clipped
         measurement in a band the signature uses: the match can drop such
         lights instead of losing the band.
+    invalid_lights : (H, W, words) ndarray of uint64
+        The same of the images with an invalid measurement (NaN, Inf,
+        negative) in a band the signature uses.
     mode : {"colour", "mono"}
     bands : int
         Number of bands B in the signature (c in colour mode, 1 in mono mode).
@@ -74,6 +77,7 @@ class SignatureSet:
     band_dark: np.ndarray
     ov: np.ndarray
     clipped_lights: np.ndarray
+    invalid_lights: np.ndarray
     mode: str
     bands: int
     images: int
@@ -143,7 +147,8 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
                        band: int | Literal["luminance"] | None = None,
                        colourspace: str = "sRGB",
                        min_norm: float | None = None,
-                       clip_level: float | None = None) -> SignatureSet:
+                       clip_level: float | None = None,
+                       box: tuple[slice, slice] | None = None) -> SignatureSet:
     """Normalise the observation vectors of a stack into signatures.
 
     Parameters
@@ -166,6 +171,9 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     clip_level : float, optional
         Measurements at or above this linear value are clipped (saturated) and
         make their band invalid. None: nothing is clipped.
+    box : (slice, slice), optional
+        Rows and columns (steps of 1) of the pixels to compute, read in place;
+        default every pixel.
 
     Returns
     -------
@@ -191,7 +199,9 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     if clip_level is not None and not clip_level > 0:
         raise InputError(f"clip_level: expected a value > 0 or None, got {clip_level!r}")
 
-    c, (h, w) = data.shape[3], data.shape[1:3]
+    c = data.shape[3]
+    rows, cols = (slice(None), slice(None)) if box is None else box
+    (first_row, h), (first_col, w) = (_span(rows, data.shape[1]), _span(cols, data.shape[2]))
     if mode == "colour":
         mixing = np.eye(c, dtype=np.float32)
     else:
@@ -200,11 +210,11 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
     ov = np.empty((h, w, b, m), dtype=np.float32)
     norms = np.empty((h, w, b), dtype=np.float32)
     bad_any, clipped_any, dark = (np.empty((h, w, b), dtype=bool) for _ in range(3))
-    lights = light_masks.empty((h, w), m)
+    lights, invalid_lights = light_masks.empty((h, w), m), light_masks.empty((h, w), m)
     _pixel_kernels.observation_vectors(
-        np.asarray(data, dtype=np.float32), mixing,  # a view of a box is read in place
+        data, first_row, first_col, mixing,
         np.inf if clip_level is None else float(clip_level), float(min_norm),
-        ov, norms, bad_any, clipped_any, dark, lights)
+        ov, norms, bad_any, clipped_any, dark, lights, invalid_lights)
     band_valid = ~bad_any & ~clipped_any & ~dark
     valid = band_valid.all(axis=-1)
     return SignatureSet(
@@ -216,7 +226,16 @@ def compute_signatures(stack, mode: Literal["colour", "mono"] = "colour", *,
         band_dark=dark,
         ov=ov,
         clipped_lights=lights,
+        invalid_lights=invalid_lights,
         mode=mode,
         bands=b,
         images=m,
     )
+
+
+def _span(part: slice, size: int) -> tuple[int, int]:
+    """(first index, count) of a slice of steps of 1 over ``size`` items."""
+    first, stop, step = part.indices(size)
+    if step != 1:
+        raise InputError(f"box: expected slices of step 1, got {part}")
+    return first, max(0, stop - first)
