@@ -16,9 +16,10 @@ import numpy as np
 from .io import srgb_encode
 from .reasons import Reason
 
-__all__ = ["COLOUR_MAP_STOPS", "DROPPED_COLOURS", "QUALITY_SCALE", "UNCERTAINTY_SCALE", "ColourScale", "as_rgb",
-           "colour_mapped", "dropped_entries", "dropped_legend", "dropped_picture", "legend", "overview", "overview_step", "reason_legend", "shaded_relief", "with_colour_bar",
-           "with_key"]
+__all__ = ["COLOUR_MAP_STOPS", "DROPPED_COLOURS", "QUALITY_SCALE", "UNCERTAINTY_SCALE",
+           "ColourScale", "as_rgb", "colour_mapped", "dropped_entries", "dropped_legend",
+           "dropped_picture", "legend", "overview", "overview_step", "picture_codes",
+           "reason_legend", "shaded_relief", "with_colour_bar", "with_key"]
 
 #: The overview's panels are drawn from images subsampled to at most this many
 #: pixels on a side (a panel is 320 pixels wide): drawing a 4096-pixel image
@@ -335,13 +336,22 @@ def with_key(picture, key) -> np.ndarray:
 
 
 def _codes(picture) -> np.ndarray:
-    """8-bit codes of a 0..1 picture (rounded), in pieces of PICTURE_CHUNK rows' worth."""
+    """8-bit codes of a 0..1 picture (see :func:`picture_codes`)."""
     picture = np.asarray(picture)
-    out = np.empty(picture.shape, dtype=np.uint8)
-    rows = max(1, PICTURE_CHUNK // max(1, picture[0].size))
-    for start in range(0, picture.shape[0], rows):
-        piece = np.asarray(picture[start:start + rows], dtype=np.float32)
-        out[start:start + rows] = np.rint(np.clip(piece, 0.0, 1.0) * 255.0)
+    return picture_codes(lambda rows: picture[rows], picture.shape, np.uint8)
+
+
+def picture_codes(rows_of, shape: tuple[int, ...], dtype=np.uint8) -> np.ndarray:
+    """Integer codes (uint8 or uint16, rounded) of a 0..1 picture of ``shape``,
+    made by ``rows_of(rows)`` (a slice of rows) PICTURE_CHUNK pixels at a time:
+    no picture-sized float temporaries."""
+    top = np.iinfo(dtype).max
+    out = np.empty(shape, dtype=dtype)
+    step = max(1, PICTURE_CHUNK // max(1, shape[1]))  # rows of PICTURE_CHUNK pixels
+    for start in range(0, shape[0], step):
+        rows = slice(start, start + step)
+        piece = np.asarray(rows_of(rows), dtype=np.float32)
+        out[rows] = np.rint(np.clip(piece, 0.0, 1.0) * np.float32(top))
     return out
 
 

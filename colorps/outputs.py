@@ -80,6 +80,7 @@ from .figures import (
     dropped_legend,
     dropped_picture,
     overview,
+    picture_codes,
     reason_legend,
     shaded_relief,
     with_colour_bar,
@@ -470,11 +471,13 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
 
     writers = {
         "normal.exr": lambda p: exr(p, result.normals, ["X", "Y", "Z"]),
-        "normal.png": lambda p: write_image(
-            p, normal_picture(result.normals, exports.normal_convention), dtype="uint16"),
+        "normal.png": lambda p: write_image(p, picture_codes(
+            lambda rows: normal_picture(result.normals[rows], exports.normal_convention),
+            (*solved.shape[:2], 3), np.uint16), dtype="uint16"),
         "albedo.exr": lambda p: exr(p, result.albedo, list(channel_names)),
-        "albedo.png": lambda p: picture(
-            p, srgb_encode(as_rgb(np.where(solved, result.albedo, 0.0)))),
+        "albedo.png": lambda p: picture(p, picture_codes(
+            lambda rows: srgb_encode(as_rgb(np.where(solved[rows], result.albedo[rows], 0.0))),
+            (*solved.shape[:2], 3))),
         "quality.exr": lambda p: exr(p, result.quality, ["Q"]),
         "quality.png": lambda p: picture(p, with_colour_bar(
             colour_mapped(result.quality, QUALITY_SCALE), QUALITY_SCALE)),

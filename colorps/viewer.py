@@ -129,7 +129,7 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     maps = _maps(result)
     # Normals and codes have fixed ranges; the other maps span their values.
     ranges = {"normal": [(-1.0, 1.0)] * 3, "codes": [_COUNT_RANGE] * 2,
-              **{name: [code_range(maps[name][..., k]) for k in range(maps[name].shape[-1])]
+              **{name: [code_range(channel) for channel in maps[name]]
                  for name in ("albedo", "scalars")}}
     steps = pyramid_steps(result.normals.shape, max_side, min_side)
     data = out / "viewer"
@@ -140,12 +140,16 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
         # one per core (each holds its codes and bytes).
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             for k, step in enumerate(steps):
-                pending = {name: pool.submit(_png_pair, values[::step, ::step], ranges[name],
-                                             scratch / f"{k}-{name}")
-                           for name, values in maps.items()}
-                images = {name: job.result() for name, job in pending.items()}
-                (data / f"level{k}.js").write_text(
-                    f"colorpsLevel({k}, {json.dumps(images)});\n", encoding="utf-8")
+                pending = {name: pool.submit(_png_pair, [c[::step, ::step] for c in channels],
+                                             ranges[name], scratch / f"{k}-{name}")
+                           for name, channels in maps.items()}
+                # Written map by map: the finest level's text is tens of megabytes.
+                with open(data / f"level{k}.js", "w", encoding="utf-8") as script:
+                    script.write(f"colorpsLevel({k}, {{")
+                    for j, name in enumerate(list(pending)):
+                        urls = pending.pop(name).result()  # dropped once written
+                        script.write(f"{', ' if j else ''}{json.dumps(name)}: {json.dumps(urls)}")
+                    script.write("});\n")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     index = _index(result, steps, ranges, band_names, title, finish)
@@ -154,27 +158,30 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     return page
 
 
-def _maps(result: Reconstruction) -> dict[str, np.ndarray]:
-    """The viewer's maps, (H, W, channels) float arrays (NaN = no value)."""
+def _maps(result: Reconstruction) -> dict[str, list[np.ndarray]]:
+    """The viewer's maps, each a list of (H, W) channels (NaN = no value; views
+    of the result's maps where they can be, not copies)."""
     albedo = result.albedo if result.albedo.shape[-1] == 1 else as_rgb(result.albedo)
     height = result.height if result.height is not None else \
         np.full(result.normals.shape[:2], np.nan, dtype=np.float32)
-    scalars = np.stack([height, result.quality, result.uncertainty], axis=-1)
-    codes = np.stack([result.reason, np.minimum(result.lights_dropped_count, 255)], axis=-1)
-    return {"normal": result.normals, "albedo": albedo, "scalars": scalars,
-            "codes": codes.astype(np.float32)}
+    count = np.minimum(result.lights_dropped_count, 255)
+    return {"normal": [result.normals[..., k] for k in range(3)],
+            "albedo": [albedo[..., k] for k in range(albedo.shape[-1])],
+            "scalars": [height, result.quality, result.uncertainty],
+            "codes": [result.reason, count]}
 
 
-def _png_pair(values: np.ndarray, ranges, prefix: Path) -> list[str]:
+def _png_pair(channels: list[np.ndarray], ranges, prefix: Path) -> list[str]:
     """Data URLs of two 8-bit RGB PNGs: the high and the low bytes of the codes
-    (encoded through files named from ``prefix``)."""
-    codes = np.zeros((*values.shape[:2], 3), dtype=np.uint16)
-    for k, (lo, hi) in enumerate(ranges):
-        codes[..., k] = encode(values[..., k], lo, hi)
+    of the channels (encoded through files named from ``prefix``)."""
+    high = np.zeros((*channels[0].shape, 3), dtype=np.uint8)
+    low = np.zeros_like(high)
+    for k, (channel, (lo, hi)) in enumerate(zip(channels, ranges)):
+        codes = encode(channel, lo, hi)
+        high[..., k], low[..., k] = codes >> 8, codes & 0xFF
     urls = []
-    for part, byte in (("high", codes >> 8), ("low", codes & 0xFF)):
-        path = write_image(prefix.with_name(f"{prefix.name}-{part}.png"),
-                           byte.astype(np.uint8), dtype="uint8")
+    for part, byte in (("high", high), ("low", low)):
+        path = write_image(prefix.with_name(f"{prefix.name}-{part}.png"), byte, dtype="uint8")
         urls.append("data:image/png;base64," + base64.b64encode(path.read_bytes()).decode())
     return urls
 
