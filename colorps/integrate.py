@@ -68,11 +68,17 @@ def slopes(normals, *, min_nz: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     -------
     gx, grow : (H, W) ndarray of float64
     """
-    n = np.asarray(normals, dtype=np.float64)
+    n = np.asarray(normals)
     if n.ndim != 3 or n.shape[2] != 3:
         raise InputError(f"normals: expected shape (H, W, 3), got {n.shape}")
-    nz = np.maximum(n[..., 2], min_nz)
-    return -n[..., 0] / nz, n[..., 1] / nz
+    # Component by component: no float64 copy of the whole map.
+    nz = np.maximum(n[..., 2].astype(np.float64), min_nz)
+    gx = n[..., 0].astype(np.float64)
+    gx /= nz
+    np.negative(gx, out=gx)
+    grow = n[..., 1].astype(np.float64)
+    grow /= nz
+    return gx, grow
 
 
 def weights_from_quality(quality, *, scale: float | None = None) -> np.ndarray:
@@ -200,15 +206,23 @@ def integrate(normals, mask=None, *, weights=None,
     if tile is not None and max(h, w) > tile:
         height = _integrate_tiled(normals, mask, weights, tol, int(tile), min_nz)
         return _zero_mean_parts(height, mask)
-    gx, grow = slopes(np.where(mask[..., None], normals, 0.0), min_nz=min_nz)
     if method == "dct":
         if not mask.all() or weights is not None:
             raise InputError("method 'dct' needs a full rectangle (every normal finite, "
                              "no mask) and no weights; use method='poisson'")
-        height[:] = _integrate_dct(gx, grow)
-    else:
-        height[mask] = _integrate_poisson(gx, grow, mask, weights, tol)
+        height[:] = _integrate_dct(*slopes(normals, min_nz=min_nz))
+    else:  # the slopes are the solver's alone: it frees them once it has its equations
+        height[mask] = _integrate_poisson(*_masked_slopes(normals, mask, min_nz), mask,
+                                          weights, tol)
     return _zero_mean_parts(height, mask)
+
+
+def _masked_slopes(normals: np.ndarray, mask: np.ndarray, min_nz: float):
+    """:func:`slopes`, 0 outside the mask (as of a normal (0, 0, 0) there)."""
+    gx, grow = slopes(normals, min_nz=min_nz)
+    gx[~mask] = 0.0
+    grow[~mask] = 0.0
+    return gx, grow
 
 
 def _integrate_dct(gx: np.ndarray, grow: np.ndarray) -> np.ndarray:
@@ -243,6 +257,7 @@ def _integrate_poisson(gx, grow, mask, weights, tol, anchor=None) -> np.ndarray:
     from .multigrid import solve
 
     system, rhs = _grid_equations(gx, grow, mask, weights, anchor)
+    del gx, grow  # freed for the solve where the caller holds no reference
     heights, _ = solve(system, rhs, tol=tol)
     return heights[mask]
 

@@ -106,21 +106,20 @@ def solve(system: GridSystem, rhs: np.ndarray, *, tol: float = 1e-6, maxiter: in
     while levels[-1].diag.size > COARSEST_PIXELS and min(levels[-1].diag.shape) > 1:
         levels.append(levels[-1].coarser())
     coarsest = np.linalg.pinv(levels[-1].dense(), hermitian=True)
-    rhs = np.where(system.inside, rhs, 0.0)
-    u = np.zeros_like(rhs)
-    r = rhs.copy()
-    norm = np.linalg.norm(rhs)
+    r = np.where(system.inside, rhs, 0.0)  # the residual of u = 0
+    u = np.zeros_like(r)
+    norm = np.linalg.norm(r)
     if norm == 0.0:
         return u, 0
     z = _v_cycle(levels, 0, r, coarsest)
     p = z.copy()
     rz = float(np.vdot(r, z))
-    lp = np.empty_like(rhs)
+    lp, step = np.empty_like(r), np.empty_like(r)  # (in place: 4 MP arrays are 32 MiB)
     for iteration in range(1, maxiter + 1):
         _mg_kernels.apply(p, system.east, system.south, system.diag, lp)
         alpha = rz / float(np.vdot(p, lp))
-        u += alpha * p
-        r -= alpha * lp
+        u += np.multiply(alpha, p, out=step)
+        r -= np.multiply(alpha, lp, out=step)
         if np.linalg.norm(r) <= tol * norm:
             return u, iteration
         z = _v_cycle(levels, 0, r, coarsest)
