@@ -114,12 +114,13 @@ def solve(system: GridSystem, rhs: np.ndarray, *, tol: float = 1e-6, maxiter: in
     z = _v_cycle(levels, 0, r, coarsest)
     p = z.copy()
     rz = float(np.vdot(r, z))
-    lp, step = np.empty_like(r), np.empty_like(r)  # (in place: 4 MP arrays are 32 MiB)
+    lp = np.empty_like(r)
     for iteration in range(1, maxiter + 1):
         _mg_kernels.apply(p, system.east, system.south, system.diag, lp)
         alpha = rz / float(np.vdot(p, lp))
-        u += np.multiply(alpha, p, out=step)
-        r -= np.multiply(alpha, lp, out=step)
+        # In place (a 4 MP array is 32 MiB): lp is free once r has its step.
+        r -= np.multiply(alpha, lp, out=lp)
+        u += np.multiply(alpha, p, out=lp)
         if np.linalg.norm(r) <= tol * norm:
             return u, iteration
         z = _v_cycle(levels, 0, r, coarsest)
