@@ -43,3 +43,17 @@ def test_overview_without_height_or_title_has_three_panels():
     np.testing.assert_allclose(figure[2 * TITLE_PX + PANEL_MARGIN + PANEL_SIDE // 2,
                                       2 * cell + cell // 2],
                                srgb_encode(np.repeat(grey[0, 0], 3)), atol=2e-3)
+
+
+def test_picture_codes_in_pieces_are_the_whole_picture_rounded(monkeypatch):
+    """Made a few rows at a time, the codes are those of the whole picture
+    rounded (uint8 and uint16), whatever the piece size."""
+    import colorps.figures as figures
+
+    rng = np.random.default_rng(3)
+    picture = rng.uniform(-0.1, 1.1, (37, 23, 3)).astype(np.float32)
+    monkeypatch.setattr(figures, "PICTURE_CHUNK", 50)  # two rows a piece
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535)):
+        codes = figures.picture_codes(lambda rows: picture[rows], picture.shape, dtype)
+        assert codes.dtype == dtype
+        np.testing.assert_array_equal(codes, np.rint(np.clip(picture, 0, 1) * np.float32(top)))

@@ -127,6 +127,22 @@ def test_write_is_atomic(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.exr"]  # no temporary left
 
 
+@pytest.mark.parametrize("dtype, top", [("uint8", 255), ("uint16", 65535)])
+def test_integer_codes_are_written_as_they_are(tmp_path, dtype, top):
+    """An array of the file's integer type is written code for code; values in
+    0..1 of any other type are scaled to the codes, as before."""
+    import OpenImageIO as oiio
+
+    codes = np.arange(4 * 5 * 3, dtype=dtype).reshape(4, 5, 3) * (top // 59)
+    for name, image in (("codes.png", codes), ("values.png", codes / top)):
+        path = write_image(tmp_path / name, image, dtype=dtype)
+        file = oiio.ImageInput.open(str(path))
+        stored = file.read_image(file.spec().format)
+        file.close()
+        assert stored.dtype == np.dtype(dtype)
+        np.testing.assert_array_equal(stored, codes)
+
+
 def test_expand_paths_natural_order_and_lists(tmp_path):
     for k in (1, 2, 10):
         (tmp_path / f"img{k}.exr").touch()

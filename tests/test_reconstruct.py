@@ -1,3 +1,5 @@
+import sys
+
 import numpy as np
 import pytest
 
@@ -197,3 +199,36 @@ def test_model_scale_pixels_are_counted_from_the_whole_scenes_corner():
     np.testing.assert_array_equal(
         model_scale_pixels(mask[7:50, 11:64], step=3, first_row=7, first_col=11),
         picked[7:50, 11:64])
+
+
+@pytest.mark.skipif(sys.version_info < (3, 11),
+                    reason="before 3.11 a caller's stack keeps the arguments of a call")
+@pytest.mark.parametrize("mode", ["colour", "mono"])
+def test_a_handed_over_stack_is_let_go_for_the_matching(monkeypatch, mode):
+    """Given its only reference, reconstruct frees the scene stack once the OVs
+    exist in colour mode (their albedo is read from them), and keeps it in mono
+    mode (the albedo needs every band): the same maps either way."""
+    import weakref
+
+    reconstruct_module = sys.modules["colorps.reconstruct"]
+    lighting = synth.ring_lights(6, 45)
+    scene = synth.smiley_surface(64)
+    ball = synth.sphere_surface(101, 48)
+    stack = synth.render(scene, lighting, noise=0.002, seed=1)
+    gauge_stack = synth.render(ball, lighting, noise=0.002, seed=2)
+    gauge = Gauge.from_sphere((101, 101), 50, 50, 48)
+    kept = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, mode=mode)
+    alive_at_matching = []
+    real_match = reconstruct_module.match_pixels
+
+    def match_pixels(*args, **kwargs):
+        alive_at_matching.append(handed_stack() is not None)
+        return real_match(*args, **kwargs)
+
+    monkeypatch.setattr(reconstruct_module, "match_pixels", match_pixels)
+    handed, handed_stack = [stack], weakref.ref(stack)
+    del stack
+    result = reconstruct(handed.pop(), gauge_stack, gauge, mask=scene.mask, mode=mode)
+    assert alive_at_matching == [mode == "mono"]
+    for name in ("normals", "albedo", "quality", "uncertainty", "solved"):
+        np.testing.assert_array_equal(getattr(result, name), getattr(kept, name), err_msg=name)

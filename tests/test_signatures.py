@@ -57,6 +57,27 @@ def test_clipped_and_negative_measurements(rng):
         compute_signatures(stack, clip_level=0)
 
 
+def test_a_box_is_read_in_place_as_its_slice_would_be(rng):
+    """``box`` gives the signatures of a box of the stack, bit for bit those of
+    the box cut out, without a copy; invalid measurements are flagged per light."""
+    stack = rng.uniform(0.0, 1.0, (6, 9, 11, 3)).astype(np.float32)
+    stack[2, 4, 5, 1] = np.nan
+    stack[4, 4, 5, 0] = -1.0
+    stack[1, 6, 3, :] = 2.0
+    box = (slice(2, 8), slice(1, 10))
+    whole = compute_signatures(stack, "colour", clip_level=1.5, box=box)
+    cut = compute_signatures(np.ascontiguousarray(stack[:, box[0], box[1]]), "colour",
+                             clip_level=1.5)
+    for name in ("ov", "norms", "band_valid", "band_invalid_value", "band_clipped",
+                 "band_dark", "clipped_lights", "invalid_lights"):
+        np.testing.assert_array_equal(getattr(whole, name), getattr(cut, name), err_msg=name)
+    assert int(whole.invalid_lights[2, 4, 0]) == (1 << 2) | (1 << 4)
+    assert int(whole.clipped_lights[4, 2, 0]) == 1 << 1
+    assert not whole.invalid_lights[whole.band_invalid_value.sum(-1) == 0].any()
+    with pytest.raises(InputError, match="step 1"):
+        compute_signatures(stack, box=(slice(0, 9, 2), slice(None)))
+
+
 def test_mono_luminance_matches_colour_science(rng):
     stack = rng.uniform(0.0, 1.0, (3, 5, 5, 3)).astype(np.float32)
     y = colour.RGB_to_XYZ(stack.astype(np.float64), colour.RGB_COLOURSPACES["sRGB"],
