@@ -3,8 +3,15 @@ import sys
 import numpy as np
 import pytest
 
-from colorps import (BucketGrid, Gauge, InputError, angular_error, compute_signatures,
-                     reconstruct, synth)
+from colorps import (
+    BucketGrid,
+    Gauge,
+    InputError,
+    angular_error,
+    compute_signatures,
+    reconstruct,
+    synth,
+)
 from colorps.errors import GaugeWarning
 
 GAUGE_R = 150.0
