@@ -77,7 +77,10 @@ class Recorder:
         setattr(module, name, timed)
 
     def peak(self, start: float, stop: float) -> float:
-        inside = [mib for t, mib in self.samples if start <= t <= stop]
+        """The largest sample within the phase, or one sampling period around it
+        (a phase shorter than the period falls between samples)."""
+        inside = [mib for t, mib in self.samples
+                  if start - SAMPLE_SECONDS <= t <= stop + SAMPLE_SECONDS]
         return max(inside) if inside else float("nan")
 
     def stop(self) -> None:
