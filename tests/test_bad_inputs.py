@@ -177,9 +177,11 @@ def test_hostile_header_refused_before_decoding(capture, tmp_path):
     folder = copy_stack(capture, tmp_path / "hostile")
     hostile_exr(folder / "scene_01.exr", 20000)
     out = tmp_path / "out"
-    code = ("import resource, sys; from colorps.cli import main; "
+    # The child's own peak (VmHWM: ru_maxrss would carry over the forking pytest's).
+    code = ("import re, sys; from colorps.cli import main; "
             f"rc = main({args_for(capture, out, scene=str(folder / 'scene_*.exr'))!r}); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
+            "print(re.search(r'VmHWM:\\s*(\\d+)', open('/proc/self/status').read())[1]); "
+            "sys.exit(rc)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 1, proc.stderr
