@@ -353,7 +353,7 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
         return solved, matches, refined
     dropped = matches.dropped[ys, xs] | refined.outliers
     lights = capture.images - light_masks.count(dropped)
-    bands = np.array([bin(b).count("1") for b in range(256)])[matches.bands_used[ys, xs]]
+    bands = light_masks.count(matches.bands_used[ys, xs][:, None])  # bits set: bands matched
     fitted = refined.inlier_residual / matches.model_scale
     rescued = poor[ys, xs] & refined.refined & (fitted <= options.max_residual) & \
         fixes_normal(bands, lights)
