@@ -87,7 +87,7 @@ from .figures import (
     with_key,
 )
 from .interrupts import interrupts_kept
-from .io import file_mode, srgb_encode, write_image
+from .io import WRITE_THREADS, file_mode, srgb_encode, write_image
 from .options import NORMAL_CONVENTIONS
 from .reasons import Reason, reason_picture
 from .results import Reconstruction, default_band_names
@@ -116,8 +116,6 @@ HEIGHT_FILES = ("height.exr", "height.tif", "height.png", "relief.png", "overvie
 #: Written when asked for, by kind.
 MESH_FILES = {"ply": "mesh.ply", "obj": "mesh.obj"}
 _ALL_FILES = OUTPUT_FILES + HEIGHT_FILES + tuple(MESH_FILES.values())
-#: Files written at once (OpenImageIO's encoders release the GIL): one per core.
-WRITE_THREADS = os.cpu_count() or 1
 #: Tile side (pixels) of the .exr maps of a tiled run (OpenEXR's usual 64).
 TILED_EXR_SIDE = 64
 _CONVENTIONS = ("camera-space normals: x right, y up, z towards the camera; "

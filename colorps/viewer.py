@@ -41,7 +41,6 @@ from __future__ import annotations
 import base64
 import html
 import json
-import os
 import shutil
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
@@ -59,7 +58,7 @@ from .figures import (
     as_rgb,
     dropped_entries,
 )
-from .io import write_image
+from .io import WRITE_THREADS, write_image
 from .reasons import Reason
 from .results import Reconstruction, default_band_names
 
@@ -137,8 +136,8 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     scratch = Path(tempfile.mkdtemp(prefix=".png-", dir=data))
     try:
         # OpenImageIO's PNG encoder releases the GIL: the maps encode in parallel,
-        # one per core (each holds its codes and bytes).
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+        # WRITE_THREADS at a time (each holds its codes and bytes).
+        with ThreadPoolExecutor(WRITE_THREADS) as pool:
             for k, step in enumerate(steps):
                 pending = {name: pool.submit(_png_pair, [c[::step, ::step] for c in channels],
                                              ranges[name], scratch / f"{k}-{name}")
