@@ -59,3 +59,12 @@ def resolve_threads(threads: int | None) -> int:
     if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
         raise InputError(f"threads: expected a positive integer or None, got {threads!r}")
     return int(min(threads, available))
+
+
+def mask_box(mask: np.ndarray) -> tuple[slice, slice]:
+    """Rows and columns of the smallest box holding every pixel of a 2-D boolean
+    mask (the whole image when none is set)."""
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    if not len(rows):
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)

@@ -30,6 +30,8 @@ from typing import Literal
 
 import numpy as np
 
+from ._checks import mask_box
+
 __all__ = ["NoiseModel", "estimate_noise", "file_noise", "quantisation_sigma"]
 
 #: The read-noise floor of floating-point data with no measurable scatter (linear).
@@ -254,8 +256,7 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
         return base
     # Only the usable pixels' box is filtered: an inner pixel's 3 x 3 lies in it
     # (a scene's mask is often a small part of its images).
-    rows, cols = np.nonzero(usable.any(axis=1))[0], np.nonzero(usable.any(axis=0))[0]
-    box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    box = mask_box(usable)
     usable, inner = usable[box], inner[box]
     taken = np.flatnonzero(inner)
     if taken.size > NOISE_SAMPLE_PIXELS:

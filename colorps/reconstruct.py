@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _pixel_kernels, light_masks
-from ._checks import check_stack
+from ._checks import check_stack, mask_box
 from .errors import GaugeWarning, InputError, LowSolvedWarning
 from .gauge import Gauge, parse_albedo
 from .matching import Matches, first_match, match_pixels
@@ -127,7 +127,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     run = resolve(options, **changes)
     options = run.options
     scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
-    whole, box = mask.shape, _mask_box(mask)  # only the mask's box is worked on
+    whole, box = mask.shape, mask_box(mask)  # only the mask's box is worked on
     origin, mask = (box[0].start, box[1].start), mask[box]
     setup = _setup(scene, box, gauge_stack, gauge, run, tables)
     m, _, _, c = scene.shape
@@ -256,15 +256,6 @@ def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) ->
         scene_invalid=scene_sig.band_invalid_value.any(axis=-1), tables=tables)
     return _Setup(capture, scene_sig, gauge_sig, usable_gauge, said,
                   time.perf_counter() - t0)
-
-
-def _mask_box(mask: np.ndarray) -> tuple[slice, slice]:
-    """Rows and columns of the smallest box holding every masked pixel (the
-    whole image when none is masked)."""
-    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-    if not len(rows):
-        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
 def _embed(result: Reconstruction, box: tuple[slice, slice], shape: tuple[int, int]
