@@ -78,6 +78,11 @@ assert (SKETCH_LANES - 1) % AXES_PER_PASS == 0
 #: Queries per unit of work handed to a thread (each allocates its scratch once).
 QUERY_CHUNK = 256
 U32 = 2.0 ** -24  # unit roundoff of float32
+#: Exact squared distances within this relative margin are a tie, which the
+#: lower table row wins. Far above float64 rounding (the same distance summed
+#: in another order, or compiled for another call, differs in its last bits),
+#: far below any difference float32 signatures can make.
+TIE_REL = 1e-12
 
 # ---------------------------------------------------------------- data layout
 #: The PCA plane and the grid on it. center (D,) and axes (2, D) float64 (the
@@ -86,8 +91,9 @@ U32 = 2.0 ** -24  # unit roundoff of float32
 Plane = namedtuple("Plane", "center axes half_width delta n")
 #: Table entries in storage order (by block, then cell, row-major). values
 #: (K, W) float32, zero-padded to W >= D; aux (K, 3) float64 (u, v, h); sketch
-#: (K, SKETCH_LANES) float32; cell (K, 2) int64 (row i, column j of its cell).
-Entries = namedtuple("Entries", "values aux sketch cell")
+#: (K, SKETCH_LANES) float32; cell (K, 2) int64 (row i, column j of its cell);
+#: row (K,) int64, the entry's row in the table given.
+Entries = namedtuple("Entries", "values aux sketch cell row")
 #: Per cell (flat index i n + j): bucket number (-1: empty) and the range
 #: begin .. end of its entries, int64.
 Cells = namedtuple("Cells", "bucket begin end")
@@ -112,9 +118,11 @@ ScanPlan = namedtuple("ScanPlan", "use_runs runs run_bound block_last offsets bo
                                   "fine_is_all fine_dd2_max entry_bound")
 #: Everything a lookup reads.
 GridData = namedtuple("GridData", "plane entries cells buckets sketch blocks plan")
-#: The state of one lookup: best entry so far (-1: none), its squared distance,
-#: buckets examined and full distances computed.
-Search = namedtuple("Search", "best dmin2 buckets tests")
+#: The state of one lookup: best entry so far (-1: none), the smallest float32
+#: squared distance seen (what pruning compares with), buckets examined, full
+#: distances computed, and the best entry's exact squared distance (-1: not
+#: computed yet; then dmin2 is the best's).
+Search = namedtuple("Search", "best dmin2 buckets tests exact")
 #: A query on the PCA plane: (u, v), its distance h from the plane, |q - b|^2
 #: and |q|^2 (float64).
 Position = namedtuple("Position", "u v h r2 norm2")
@@ -257,13 +265,91 @@ def _dist2(query, table, row):
     return _dist2_short(query, table, row)
 
 
+@njit(cache=True)
+def exact_distance2(query, table, row):
+    """|query - table[row]|^2 in float64 over ``table.shape[1]`` values.
+
+    What every lookup, grid or brute force, decides near ties with (see
+    :func:`nearer`)."""
+    acc = 0.0
+    for k in range(table.shape[1]):
+        t = np.float64(query[k]) - np.float64(table[row, k])
+        acc += t * t
+    return acc
+
+
+@njit(cache=True, inline="always")
+def nearer(exact, row, best_exact, best_row):
+    """True when a table row at exact squared distance ``exact`` beats the best
+    so far: nearer by more than TIE_REL, or as near with a lower row. The one
+    rule of the grid's lookup and of the brute force, so both return the same
+    row however they visit the table."""
+    if best_row < 0 or exact < best_exact * (1.0 - TIE_REL):
+        return True
+    return exact <= best_exact * (1.0 + TIE_REL) and row < best_row
+
+
+@njit(cache=True)
+def nearest_of_candidates(queries, table, pair_query, pair_row, out_row):
+    """For each query, the nearest of its candidate rows into ``out_row``.
+
+    Pairs (``pair_query[i]``, ``pair_row[i]``) are compared by :func:`nearer`,
+    for a brute-force search that keeps every row within the pruning margin of
+    its smallest approximate distance."""
+    best = np.full(queries.shape[0], np.inf)
+    out_row[:] = -1
+    for i in range(pair_query.shape[0]):
+        q = pair_query[i]
+        r = pair_row[i]
+        exact = exact_distance2(queries[q], table, r)
+        if nearer(exact, r, best[q], out_row[q]):
+            best[q] = exact
+            out_row[q] = r
+
+
 @njit(cache=True, inline="always", fastmath=FASTMATH)
-def _test_entry(query, values, e, search):
-    """Compute one full distance; keep entry e if it is the closest so far."""
-    d2 = np.float64(_dist2(query, values, e))
-    if d2 < search.dmin2:
-        return Search(e, d2, search.buckets, search.tests + 1)
-    return Search(search.best, search.dmin2, search.buckets, search.tests + 1)
+def _keep_nearer(query, values, rows, e, d2, best, dmin2, exact):
+    """(best, dmin2, exact) of a search (see :class:`Search`) after entry e, at
+    float32 squared distance d2, if it is :func:`nearer` than the best so far.
+
+    An entry farther than the pruning margin of the smallest float32 distance
+    seen cannot be, one nearer than that by the margin is (the rounding of
+    float32 distances is far smaller): only those in between, near ties, are
+    compared exactly (:func:`_near_tie`)."""
+    if _prunable(d2, dmin2):
+        return best, dmin2, exact
+    if d2 < dmin2 * (1.0 - REL_SLACK) - ABS_SLACK:
+        return e, d2, -1.0
+    return _near_tie(query, values, rows, e, d2, best, dmin2, exact)
+
+
+@njit(cache=True, fastmath=FASTMATH)  # not inlined: rare, and kept out of the hot loops
+def _near_tie(query, values, rows, e, d2, best, dmin2, exact):
+    """:func:`_keep_nearer` for an entry within the margin of the best: compared
+    exactly (the best's exact distance is computed when first needed)."""
+    if exact < 0.0:
+        exact = exact_distance2(query, values, best)
+    dmin2 = min(d2, dmin2)
+    exact_e = exact_distance2(query, values, e)
+    if nearer(exact_e, rows[e], exact, rows[best]):
+        return e, dmin2, exact_e
+    return best, dmin2, exact
+
+
+@njit(cache=True, inline="always")
+def _bucket_counted(search):
+    """The search with one more bucket examined."""
+    return Search(search.best, search.dmin2, search.buckets + 1, search.tests,
+                  search.exact)
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _test_entry(query, entries, e, search):
+    """Compute one full distance; keep entry e if it is the nearest so far."""
+    d2 = np.float64(_dist2(query, entries.values, e))
+    best, dmin2, exact = _keep_nearer(query, entries.values, entries.row, e, d2,
+                                      search.best, search.dmin2, search.exact)
+    return Search(best, dmin2, search.buckets, search.tests + 1, exact)
 
 
 @njit(cache=True, inline="always")
@@ -388,8 +474,9 @@ def _scan_run(query, position, i, j, run, grid, search):
     gv = _interval_gap(position.v, c0 * delta - half_width, (c1 + 1) * delta - half_width)
     if _prunable(gu * gu + gv * gv, search.dmin2):
         return search
-    best, dmin2, n_buckets, n_tests = search
-    block_last = grid.plan.block_last
+    block_last, rows = grid.plan.block_last, grid.entries.row
+    best, dmin2, n_buckets, n_tests, exact = search
+    limit = dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
     while c0 <= c1:  # cells of one row are contiguous within a block
         stop = min(c1, block_last[c0])
         first = cells.begin[ci * n + c0]
@@ -398,12 +485,13 @@ def _scan_run(query, position, i, j, run, grid, search):
             n_buckets += 1
         for e in range(first, last):  # runs are used up to RUN_SCAN_DIMS only
             d2 = np.float64(_dist2_short(query, values, e))
-            if d2 < dmin2:
-                best = e
-                dmin2 = d2
+            if d2 <= limit:  # not _prunable: the first test of _keep_nearer, hoisted
+                best, dmin2, exact = _keep_nearer(query, values, rows, e, d2, best, dmin2,
+                                                  exact)
+                limit = dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
         n_tests += last - first
         c0 = stop + 1
-    return Search(best, dmin2, n_buckets, n_tests)
+    return Search(best, dmin2, n_buckets, n_tests, exact)
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
@@ -429,9 +517,9 @@ def _scan_bucket(query, position, sketched, low, high, ci, cj, bucket, start, st
         if _prunable(_sketch_gap2(low, high, buckets.box_low, buckets.box_high, bucket),
                      search.dmin2):
             return search
-        search = Search(search.best, search.dmin2, search.buckets + 1, search.tests)
+        search = _bucket_counted(search)
         if stop - start == 1:  # the bucket's box is its entry's sketch
-            return _test_entry(query, entries.values, start, search)
+            return _test_entry(query, entries, start, search)
         # Up to D = 16 the (u, v, h) bound is the only per-entry test worth its
         # cost. Above, the entry's sketch bound is, and the (u, v, h) bound
         # comes first only in large buckets (coarse grids), where it prunes most.
@@ -443,13 +531,13 @@ def _scan_bucket(query, position, sketched, low, high, ci, cj, bucket, start, st
                     _sketch_gap2(low, high, entries.sketch, entries.sketch, e),
                     search.dmin2):
                 continue
-            search = _test_entry(query, entries.values, e, search)
+            search = _test_entry(query, entries, e, search)
         return search
     if stop - start == 1:  # the entry's own (u, v, h) bound is tighter
         if _prunable(_aux_gap2(position, entries.aux, start), search.dmin2):
             return search
-        search = _test_entry(query, entries.values, start, search)
-        return Search(search.best, search.dmin2, search.buckets + 1, search.tests)
+        search = _test_entry(query, entries, start, search)
+        return _bucket_counted(search)
     box_u0 = ci * plane.delta - plane.half_width
     box_v0 = cj * plane.delta - plane.half_width
     gu = _interval_gap_free(position.u, box_u0, box_u0 + plane.delta)
@@ -458,7 +546,7 @@ def _scan_bucket(query, position, sketched, low, high, ci, cj, bucket, start, st
                             buckets.h_range[bucket, 1])
     if _prunable(gu * gu + gv * gv + gh * gh, search.dmin2):
         return search
-    search = Search(search.best, search.dmin2, search.buckets + 1, search.tests)
+    search = _bucket_counted(search)
     if stop - start >= MIN_ENTRIES_FOR_BALL_TEST and search.dmin2 < np.inf:
         centre_dist = np.sqrt(np.float64(_dist2(query, buckets.mean, bucket)))
         gap = centre_dist - buckets.radius[bucket]
@@ -467,7 +555,7 @@ def _scan_bucket(query, position, sketched, low, high, ci, cj, bucket, start, st
     for e in range(start, stop):
         if _prunable(_aux_gap2(position, entries.aux, e), search.dmin2):
             continue
-        search = _test_entry(query, entries.values, e, search)
+        search = _test_entry(query, entries, e, search)
     return search
 
 
@@ -510,7 +598,7 @@ def _lookup_one(query, low, high, grid, eager):
     fu = (position.u + half_width) / delta - i
     fv = (position.v + half_width) / delta - j
     margin = max(min(fu, 1.0 - fu, fv, 1.0 - fv), 0.0) * delta
-    search = Search(-1, np.inf, 0, 0)
+    search = Search(-1, np.inf, 0, 0, -1.0)
     sketched = False
 
     # Phase 1: the paper's scan (Procedure 1) over the nearby cells, eq. 15 order.
@@ -587,7 +675,7 @@ def _lookup_one(query, low, high, grid, eager):
         if _prunable(_sketch_gap2(low, high, blocks.box_low, blocks.box_high, kb),
                      search.dmin2):
             continue
-        search = Search(search.best, search.dmin2, search.buckets + 1, search.tests)
+        search = _bucket_counted(search)
         for e in range(start, stop):
             if _dd2(entries.cell[e, 0] - i, entries.cell[e, 1] - j) < covered_dd2:
                 continue  # phase 1 tested it
@@ -595,7 +683,7 @@ def _lookup_one(query, low, high, grid, eager):
                     _sketch_gap2(low, high, entries.sketch, entries.sketch, e),
                     search.dmin2):
                 continue
-            search = _test_entry(query, entries.values, e, search)
+            search = _test_entry(query, entries, e, search)
     return search, sketched
 
 
@@ -624,8 +712,8 @@ def _lookup_chunk(queries, first, stop, grid, low, high, padded, out_row, out_di
             query = padded
         search, sketched = _lookup_one(query, low, high, grid, eager)
         eager = sketched  # neighbours tend to need the same work
-        out_row[q] = search.best
-        out_dist[q] = np.sqrt(search.dmin2)
+        out_row[q] = grid.entries.row[search.best]
+        out_dist[q] = np.sqrt(search.exact if search.exact >= 0.0 else search.dmin2)
         out_buckets[q] = search.buckets
         out_tests[q] = search.tests
 
@@ -636,8 +724,7 @@ def lookup(queries, plane, entries, cells, buckets, sketch, blocks, plan, out_ro
     """Nearest table row of every query into the outputs (``prange`` over chunks).
 
     The parts of a :class:`GridData` come one by one: numba's parallel loops
-    take flat tuples only, not tuples of tuples. The outputs (row in storage
-    order, distance, buckets examined b and full distances d per query) are
+    take flat tuples only, not tuples of tuples. The outputs (table row, distance, buckets examined b and full distances d per query) are
     plain arrays: with numba 0.68 writes to arrays held in a tuple were lost
     in a parallel loop. Each chunk of ``QUERY_CHUNK`` queries allocates its
     scratch space once.

@@ -444,14 +444,14 @@ class BucketGrid:
         entries = _grid_kernels.Entries(
             values=_padded(np.take(table, order, axis=0)), aux=uvh_sorted,
             sketch=entry_sketch,
-            cell=np.stack([np.take(ci, order), np.take(cj, order)], axis=1))
+            cell=np.stack([np.take(ci, order), np.take(cj, order)], axis=1),
+            row=order.astype(np.int64))
         self._data = _grid_kernels.GridData(
             plane=plane, entries=entries, cells=cells,
             buckets=_buckets(sorted64, uvh_sorted[:, 2].copy(), first, entry_sketch),
             sketch=sketch,
             blocks=_blocks(entry_sketch, block_start, n, block, plane.delta),
             plan=_scan_plan(n, dims, block, plane.delta))
-        self._entry_index = order.astype(np.int64)
         self.n = n
         self.size = k_entries
         self.dims = dims
@@ -478,7 +478,8 @@ class BucketGrid:
         -------
         rows : (Q,) ndarray of int64
             Index into the table (the ``signatures`` given to the constructor)
-            of the nearest entry. Among exactly tied entries any may be returned.
+            of the nearest entry; of entries at the same distance (compared in
+            float64), the lowest row.
         distances : (Q,) ndarray of float32
             Euclidean distance to that entry.
         stats : QueryStats
@@ -505,7 +506,6 @@ class BucketGrid:
                 _grid_kernels.lookup(q, *self._data, rows, dist, n_buckets, n_tests)
         finally:
             numba.set_num_threads(previous)
-        rows = self._entry_index[rows]
         if not return_stats:
             return rows, dist
         stats = QueryStats(float(n_buckets.mean()), float(n_tests.mean()), n_buckets, n_tests)
@@ -518,7 +518,7 @@ class BucketGrid:
             if isinstance(value, np.ndarray):
                 return value.nbytes
             return sum(total(v) for v in value) if isinstance(value, tuple) else 0
-        return total(tuple(self._data)) + self._entry_index.nbytes + self.bucket_counts.nbytes
+        return total(tuple(self._data)) + self.bucket_counts.nbytes
 
     def __repr__(self) -> str:
         return (f"BucketGrid(size={self.size}, dims={self.dims}, n={self.n}, "

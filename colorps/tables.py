@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _pixel_kernels
+from . import _grid_kernels, _pixel_kernels
 from ._config import AUTO_N_SAMPLE
 from .errors import InputError
 from .grid import BucketGrid
@@ -103,17 +103,8 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
     and a grid built is offered to it."""
     grid = None if tables is None else tables.get(key)
     if grid is None and len(queries) < BRUTE_FORCE_PIXELS:
-        t = table.astype(np.float64)
-        t2 = np.einsum("ij,ij->i", t, t)
-        rows = np.empty(len(queries), dtype=np.int64)
-        # Blocks of queries x table rows distances (not x dimensions too: with 96
-        # lights that left one query per block, a matrix-vector product each).
-        step = max(1, BRUTE_FORCE_BLOCK // max(1, len(table)))
-        for a in range(0, len(queries), step):
-            q = queries[a:a + step].astype(np.float64)
-            d2 = t2[None, :] - 2.0 * q @ t.T
-            rows[a:a + step] = np.argmin(d2, axis=1)
-        return rows, float(len(queries)), float(len(queries) * len(table)), None
+        return (_brute_force(table, queries), float(len(queries)),
+                float(len(queries) * len(table)), None)
     if grid is None:
         grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
         if tables is not None:
@@ -121,6 +112,30 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
     rows, _, st = grid.query(queries, threads=threads, return_stats=True)
     return (rows, float(st.buckets_per_query.sum()), float(st.tests_per_query.sum()),
             grid.n)
+
+
+def _brute_force(table: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """The grid's answer without a grid: each query's nearest table row, by the
+    grid's rule for near ties (:func:`_grid_kernels.exact_distance2`).
+
+    Distances come from |q|^2 + |t|^2 - 2 q.t in float64, in blocks of queries
+    x table rows (not x dimensions too: with 96 lights that left one query per
+    block, a matrix-vector product each); every row within the grid's pruning
+    margin of a query's smallest is then compared exactly."""
+    table = np.ascontiguousarray(table, dtype=np.float32)
+    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    t = table.astype(np.float64)
+    t2 = np.einsum("ij,ij->i", t, t)
+    rows = np.empty(len(queries), dtype=np.int64)
+    step = max(1, BRUTE_FORCE_BLOCK // max(1, len(table)))
+    for a in range(0, len(queries), step):
+        q = queries[a:a + step].astype(np.float64)
+        d2 = np.einsum("ij,ij->i", q, q)[:, None] + t2[None, :] - 2.0 * q @ t.T
+        limit = d2.min(axis=1) * (1.0 + _grid_kernels.REL_SLACK) + _grid_kernels.ABS_SLACK
+        pair_query, pair_row = np.nonzero(d2 <= limit[:, None])
+        _grid_kernels.nearest_of_candidates(queries[a:a + step], table, pair_query,
+                                            pair_row, rows[a:a + step])
+    return rows
 
 
 @dataclass

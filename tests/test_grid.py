@@ -103,7 +103,7 @@ def test_sketch_bound_is_a_tight_lower_bound(dims, offset, rng):
                               noisy(table, rng, 50, 3.0)])
     grid = BucketGrid(table)
     sketch, points = grid._data.sketch, grid._data.entries.sketch
-    entries = table[grid._entry_index].astype(np.float64)  # storage order
+    entries = table[grid._data.entries.row].astype(np.float64)  # storage order
     low = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
     high = np.zeros(kernels.SKETCH_LANES, dtype=np.float32)
     ratios = []
@@ -142,10 +142,34 @@ def test_duplicated_entries(rng):
     queries = noisy(base, rng, 500, 0.01)
     rows, dist = BucketGrid(table).query(queries)
     assert_exact(table, queries, rows, dist)
+    assert (rows < len(base)).all()  # of equal entries, the first
     # All-identical table: R is the epsilon of eq. 11, every entry ties.
     same = np.repeat(base[:1], 30, axis=0)
     rows, dist = BucketGrid(same).query(queries)
     assert_exact(same, queries, rows, dist)
+    assert (rows == 0).all()
+
+
+@pytest.mark.parametrize("dims", [4, 6, 18, 40])
+def test_grid_and_brute_force_settle_near_ties_alike(dims, rng):
+    """A mirror-symmetric table (a gauge lit symmetrically) and queries on its
+    mirror: nearly every query has two entries at the same distance up to
+    rounding. The grid and the brute force of few queries must pick the same
+    one (a tiled run matches a group by one, the whole image by the other)."""
+    from colorps.tables import BRUTE_FORCE_PIXELS, nearest
+
+    half = dims // 2
+    base = manifold(dims, 1500, rng)
+    mirrored = np.concatenate([base[:, half:], base[:, :half]], axis=1)
+    table = np.concatenate([base, mirrored])
+    queries = noisy(table, rng, 400, 0.01)
+    queries[:, half:] = queries[:, :half]  # on the mirror
+    grid_rows, _ = BucketGrid(table).query(queries)
+    brute_rows = np.concatenate([
+        nearest(table, queries[a:a + BRUTE_FORCE_PIXELS - 1])[0]
+        for a in range(0, len(queries), BRUTE_FORCE_PIXELS - 1)])
+    assert nearest(table, queries[:BRUTE_FORCE_PIXELS - 1])[3] is None  # brute force
+    np.testing.assert_array_equal(grid_rows, brute_rows)
 
 
 def test_queries_on_cell_borders(rng):
