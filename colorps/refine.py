@@ -227,7 +227,10 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     rows = np.asarray(matched.rows, dtype=np.int64)
     near = np.zeros(hg * wg, dtype=bool)
     near[rows] = True
-    reach = 2 * _refine_kernels.MAX_MOVES + 1  # the fit may move this far
+    # The fit may move MAX_MOVES pixels, from the matched pixel or, at the rim,
+    # from its modelled neighbour: every model it may look at is fitted, so a
+    # pixel's normal does not depend on what the others matched (tiles).
+    reach = 2 * (_refine_kernels.MAX_MOVES + 1) + 1
     needed = binary_dilation(near.reshape(hg, wg), np.ones((reach, reach), bool))
     coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
                                            usable, needed)
