@@ -43,6 +43,18 @@ RIM_MARGIN_FRACTION = 0.02
 #: sphere lit from one side only shows half its disk).
 BRIGHT_PERCENTILE = 99.5
 SEGMENT_LEVEL = 0.05
+#: find_sphere's edge: EDGE_RAYS radii sampled every EDGE_STEP_PX from
+#: EDGE_INNER_PX inside the outline's circle to EDGE_OUTER_PX outside; on each,
+#: the edge is at half the brightness of the ramp's shoulder (the outermost point
+#: at EDGE_SHOULDER of the largest value inside, the 10-90 % edge's 90 %); radii
+#: whose largest value is under EDGE_MIN_LEVEL of the bright level (an unlit part
+#: of the rim) are left out.
+EDGE_RAYS = 720
+EDGE_STEP_PX = 0.05
+EDGE_INNER_PX = 8.0
+EDGE_OUTER_PX = 4.0
+EDGE_SHOULDER = 0.9
+EDGE_MIN_LEVEL = 0.2
 SECOND_REGION = 0.25
 MIN_OUTLINE_POINTS = 20
 RANSAC_RESIDUAL_PX = 1.0
@@ -214,6 +226,17 @@ def find_sphere(stack) -> tuple[float, float, float]:
     lit arc of the outline lies on the circle; the rest (the terminator, where
     the unlit part begins) lies inside it.
 
+    That outline lies outside the sphere's edge by the blur of its pixels and
+    of the lens: 0.4 px on the bundled sample's sharp render (its mean normal
+    error 0.27 degrees against 0.13 with the true circle), 1.4 and 2.9 px with a
+    Gaussian blur of 1 and 2 px. So the circle is then
+    moved to the edge (:func:`_edge_circle`): along each of EDGE_RAYS radii,
+    the edge is where the brightest picture falls to half its value at the
+    shoulder of the ramp (the outermost point still at EDGE_SHOULDER of the
+    largest value within EDGE_INNER_PX inside), and the circle is fitted again
+    to those points (radius within 0.05 px of the truth on renders blurred by
+    0 to 2 px).
+
     The circle is accepted when its inliers make up MIN_INLIER_FRACTION of the
     outline and span MIN_ARC_DEG around the centre, the region lies within the
     circle and covers MIN_COVER of it.
@@ -269,10 +292,7 @@ def find_sphere(stack) -> tuple[float, float, float]:
                                     max_trials=RANSAC_TRIALS, rng=0)
     if model is None or inliers is None:
         raise GaugeError("sphere auto: no circle fits the gauge's outline")
-    if hasattr(model, "center"):  # scikit-image >= 0.26
-        (cx, cy), r = (float(v) for v in model.center), float(model.radius)
-    else:
-        cx, cy, r = (float(v) for v in model.params)
+    cx, cy, r = _circle_of(model)
     angles = np.degrees(np.arctan2(points[inliers, 1] - cy, points[inliers, 0] - cx))
     gaps = np.diff(np.sort(angles), append=np.sort(angles)[:1] + 360.0) if angles.size \
         else np.array([360.0])
@@ -287,4 +307,47 @@ def find_sphere(stack) -> tuple[float, float, float]:
             f"explains {inliers.mean():.0%} of the outline over a {arc:.0f} degree arc, "
             f"{inside:.0%} of the region inside it, covering {cover:.0%} of the disk); "
             "give --sphere CX,CY,R")
+    return _edge_circle(brightest, (cx, cy, r), bright)
+
+
+def _circle_of(model) -> tuple[float, float, float]:
+    """(cx, cy, r) of a fitted scikit-image ``CircleModel``."""
+    if hasattr(model, "center"):  # scikit-image >= 0.26
+        (cx, cy), r = (float(v) for v in model.center), float(model.radius)
+        return cx, cy, r
+    cx, cy, r = (float(v) for v in model.params)
     return cx, cy, r
+
+
+def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
+                 bright: float) -> tuple[float, float, float]:
+    """The circle through the sphere's edge near ``circle`` (see :func:`find_sphere`);
+    ``circle`` itself when too few radii cross a lit edge."""
+    from scipy.ndimage import map_coordinates
+    from skimage import measure
+
+    cx, cy, r = circle
+    angle = np.linspace(0.0, 2 * np.pi, EDGE_RAYS, endpoint=False)
+    along = np.arange(-EDGE_INNER_PX, EDGE_OUTER_PX + EDGE_STEP_PX / 2, EDGE_STEP_PX)
+    radii = r + along[None, :]
+    profile = map_coordinates(brightest, [cy + radii * np.sin(angle)[:, None],
+                                          cx + radii * np.cos(angle)[:, None]],
+                              order=1, mode="nearest")
+    index = np.arange(along.size)
+    top = profile[:, along <= 0].max(axis=1)
+    shoulder = np.where(profile >= EDGE_SHOULDER * top[:, None], index, -1).max(axis=1)
+    half = 0.5 * profile[np.arange(EDGE_RAYS), shoulder]
+    last = np.where(profile >= half[:, None], index, -1).max(axis=1)  # outermost above half
+    lit = (top >= EDGE_MIN_LEVEL * bright) & (last + 1 < along.size)
+    rays, last, half = np.flatnonzero(lit), last[lit], half[lit]
+    above, below = profile[rays, last], profile[rays, last + 1]
+    edge = r + along[last] + (above - half) / np.maximum(above - below, 1e-12) * EDGE_STEP_PX
+    points = np.stack([cx + edge * np.cos(angle[rays]), cy + edge * np.sin(angle[rays])], axis=1)
+    if len(points) < MIN_OUTLINE_POINTS:
+        return circle
+    model, inliers = measure.ransac(points, measure.CircleModel, min_samples=3,
+                                    residual_threshold=RANSAC_RESIDUAL_PX,
+                                    max_trials=RANSAC_TRIALS, rng=0)
+    if model is None or inliers is None or inliers.mean() < MIN_INLIER_FRACTION:
+        return circle
+    return _circle_of(model)

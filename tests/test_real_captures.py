@@ -195,14 +195,31 @@ def one_sided_lights(m=6, theta=50.0):
 
 
 @pytest.mark.parametrize("radius", [30, 60, 100])
-def test_auto_sphere_on_a_sphere_lit_from_one_side(radius):
+@pytest.mark.parametrize("blur", [0.0, 1.5])
+def test_auto_sphere_on_a_sphere_lit_from_one_side(radius, blur):
+    """The circle through the sphere's edge, not through its outline at a low
+    level (0.3 px outside on a sharp render, 2 px with a blur of 1.5 px)."""
+    from scipy.ndimage import gaussian_filter
+
     ball = synth.sphere_surface((2 * radius + 30, 2 * radius + 50), radius,
                                 centre=(radius + 12.3, radius + 20.7))
-    stack = synth.render(ball, one_sided_lights(), noise=0.003)
+    stack = gaussian_filter(synth.render(ball, one_sided_lights(), noise=0.003),
+                            (0, blur, blur, 0))
     eight_bit = np.round(np.clip(stack, 0, 1) * 255) / 255
     cx, cy, r = find_sphere(eight_bit)
-    assert abs(cx - (radius + 12.3)) < 1 and abs(cy - (radius + 20.7)) < 1
-    assert abs(r - radius) < 1
+    assert abs(cx - (radius + 12.3)) < 0.5 and abs(cy - (radius + 20.7)) < 0.5
+    assert abs(r - radius) < 0.25
+
+
+@pytest.mark.parametrize("blur", [0.0, 1.0, 2.0])
+def test_auto_sphere_lit_all_round_within_a_tenth_of_a_pixel(blur):
+    from scipy.ndimage import gaussian_filter
+
+    ball = synth.sphere_surface((150, 140), 60, centre=(72.4, 68.9))
+    stack = gaussian_filter(synth.render(ball, synth.ring_lights(8, 45), noise=0.003),
+                            (0, blur, blur, 0))
+    cx, cy, r = find_sphere(stack)
+    assert abs(cx - 72.4) < 0.05 and abs(cy - 68.9) < 0.05 and abs(r - 60) < 0.1
 
 
 def test_auto_sphere_refuses_two_spheres_and_none():
