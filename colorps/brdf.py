@@ -78,6 +78,9 @@ HUBER_K = 2.0
 #: the smoothness of the falloff (second differences), relative to the data.
 PRIOR_WEIGHT = 1e-6
 SMOOTHNESS_WEIGHT = 1e-4
+#: The prior's weight in the rounds where fit_brdf holds the falloff at
+#: Lambert's (its ``settle_rounds``): g = 1 to about 1e-6.
+SETTLED_PRIOR_WEIGHT = 1e6
 
 
 @dataclass(frozen=True)
@@ -245,8 +248,15 @@ def _hats(cosine: np.ndarray) -> np.ndarray:
 
 
 def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
-             intensities: np.ndarray, usable: np.ndarray) -> tuple[BRDF, float]:
+             intensities: np.ndarray, usable: np.ndarray, *, settle_rounds: int = 0
+             ) -> tuple[BRDF, float]:
     """Fit a :class:`BRDF` to observations of pixels at known (estimated) normals.
+
+    The falloff g and the normals' tilt can explain much the same shading: a
+    falloff fitted at normals of another finish's match takes up their error,
+    and the joint rounds then stay near them. With ``settle_rounds`` the first
+    rounds hold g at Lambert's (g = 1), fitting the roughness and the highlight
+    alone, while the normals settle; the rest free it.
 
     Parameters
     ----------
@@ -258,6 +268,8 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
         The lights.
     usable : (m, N, c) ndarray of bool
         Measurements to fit (not clipped, not dark, finite).
+    settle_rounds : int, optional
+        Rounds (of 1 + JOINT_ROUNDS) that hold the falloff at Lambert's.
 
     Returns
     -------
@@ -291,13 +303,15 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
         hats = _hats(cosine)  # (m, N, K)
         fits = {}
 
+        prior = SETTLED_PRIOR_WEIGHT if round_ < settle_rounds else PRIOR_WEIGHT
+
         def fit_at(shininess, roughness, fits=fits, hats=hats, cosine=cosine,
-                   cos_half=cos_half, normals=normals):  # this round's normals, bound now
+                   cos_half=cos_half, normals=normals, prior=prior):  # this round's, bound now
             if (shininess, roughness) not in fits:
                 basis = hats if roughness == 0.0 else \
                     hats * oren_nayar_factor(normals, directions, roughness)[..., None]
                 fits[shininess, roughness] = _fit_at(obs, base_weight, basis,
-                                                     _lobe(cosine, cos_half, shininess))
+                                                     _lobe(cosine, cos_half, shininess), prior)
             return fits[shininess, roughness][2]
 
         roughness = brdf.roughness
@@ -366,8 +380,11 @@ def _refine_normals(obs, weight, normals, brdf: BRDF, directions) -> np.ndarray:
     return moved(u, v)
 
 
-def _fit_at(obs, base_weight, diffuse_basis, lobe):
+def _fit_at(obs, base_weight, diffuse_basis, lobe, prior_weight):
     """Alternating least squares at one shininess: (falloff, specular, cost).
+
+    ``prior_weight`` is the pull of the falloff towards Lambert's (PRIOR_WEIGHT,
+    or SETTLED_PRIOR_WEIGHT to hold it there).
 
     The cost is the mean Huber loss of the relative residuals, with the
     threshold taken from the Lambertian start (the same for every shininess).
@@ -393,8 +410,8 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe):
     second = np.zeros((k - 3, k - 1 + c))
     for j in range(k - 3):
         second[j, j:j + 3] = (1.0, -2.0, 1.0)
-    regulariser = PRIOR_WEIGHT * prior.T @ prior + SMOOTHNESS_WEIGHT * second.T @ second
-    pull = PRIOR_WEIGHT * prior.T @ np.ones(k - 1)
+    regulariser = prior_weight * prior.T @ prior + SMOOTHNESS_WEIGHT * second.T @ second
+    pull = prior_weight * prior.T @ np.ones(k - 1)
     measured = np.count_nonzero(base_weight)
     data = dict(obs=obs, weight=base_weight, basis=diffuse_basis, lobe=lobe)
     kernels.fit_albedo(robust=robust, falloff=falloff, specular=specular, albedo=albedo,
