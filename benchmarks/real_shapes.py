@@ -26,8 +26,10 @@ counted as 90 degrees, the median, and the fraction solved, for
 * **least squares**: Woodham's Lambertian photometric stereo on every light
   (the bands' mean), every pixel solved;
 
-the **facets** of gauge mode: the fraction of neighbouring solved pixels
-whose normals are identical (flat patches where the refinement kept a table
+where the gauge's finish differs from the scene's, a row more: virtual mode with
+the lights measured on the gauge (:func:`colorps.matte_lights.matte_sphere_lights`,
+what ``calibrate-lights --matte`` writes); the **facets** of gauge mode: the
+fraction of neighbouring solved pixels whose normals are identical (flat patches where the refinement kept a table
 normal), and how many of its errors lie within the 68 % uncertainty.
 
 With ``--diligent FOLDER`` (DiLiGenT's ``pmsData/ballPNG``) it adds the Ball, in
@@ -48,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from colorps import Gauge, Lights, Options, angular_error, reconstruct, synth
 from colorps.camera import Camera
 from colorps.finishes import Gloss
+from colorps.matte_lights import matte_sphere_lights
 from colorps.resolve import StackModel, resolve
 from colorps.shapes import dome_lights, folds_surface
 from colorps.virtual import virtual_gauge
@@ -179,6 +182,13 @@ def main(argv=None) -> None:
             mean, median, solved = scores(plain.normals, plain.solved, scene.normals, mask)
             print(f"| (the same gauge read without the camera) | {mean:.2f} / {median:.2f} / "
                   f"{solved:.2%} | | | | | |", flush=True)
+        if scene_brdf != gauge_brdf:  # the gauge's lights, for the scene's own finish
+            measured, _ = matte_sphere_lights(gauge_stack, gauge.sphere)
+            by_lights = run_virtual(stack, measured, mask)
+            mean, median, solved = scores(by_lights.normals, by_lights.solved, scene.normals,
+                                          mask)
+            print(f"| (the same, lights from the gauge: calibrate-lights --matte) | | "
+                  f"{mean:.2f} / {median:.2f} / {solved:.2%} | | | | |", flush=True)
     if args.diligent is not None:
         ball(args.diligent)
 

@@ -287,9 +287,12 @@ def build_parser() -> argparse.ArgumentParser:
     integ.add_argument("--overwrite", action="store_true", help="replace existing files")
 
     cal = sub.add_parser("calibrate-lights", formatter_class=_FORMATTER,
-                         help="light directions from the highlight on a mirror sphere")
+                         help="lights from a mirror sphere's highlights, or a matte sphere")
     cal.add_argument("images", nargs="+", metavar="IMAGES",
-                     help="mirror-sphere images (globs or paths), one per light, in order")
+                     help="sphere images (globs or paths), one per light, in order")
+    cal.add_argument("--matte", action="store_true",
+                     help="a matte sphere (a gauge): directions and intensities by a "
+                          "Lambertian fit of its shading")
     cal.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="sphere silhouette in pixels, or 'auto' to find it")
     cal.add_argument("--sphere-mask", metavar="FILE",
@@ -446,18 +449,6 @@ def main(argv=None) -> int:
         return _run(args, received)
 
 
-def _print_highlights(names, found, sphere) -> None:
-    """calibrate-lights' table: per image the direction and how sure it is."""
-    print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
-    print(f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>4s} "
-          f"{'clip':>4s} {'elong':>5s} {'deg/px':>6s} {'rival':>5s}")
-    for name, f in zip(names, found):
-        x, y, z = f.direction
-        print(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
-              f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
-              f"{f.clipped:4d} {f.elongation:5.2f} {f.degrees_per_pixel:6.2f} {f.rival:5.2f}")
-
-
 def _run(args, received: list[int]) -> int:
     """Run the command; ``received`` lists the signals caught while it ran."""
     try:
@@ -491,11 +482,12 @@ def _run(args, received: list[int]) -> int:
             print(f"integrated {inside.sum()} pixels; relief depth "
                   f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")
         elif args.command == "calibrate-lights":
-            lights, found, sphere = calibrate_lights_files(
+            _, found, sphere, table, written = calibrate_lights_files(
                 args.images, args.sphere, args.out, sphere_mask=args.sphere_mask,
-                overwrite=args.overwrite)
-            _print_highlights(lights.names, found, sphere)
-            print(f"wrote {len(found)} light directions to {args.out}")
+                matte=args.matte, overwrite=args.overwrite)
+            print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
+            print("\n".join(table))
+            print(f"wrote {len(found)} lights to {', '.join(map(str, written))}")
         elif args.command == "relight":
             from .relight import relight_files
 

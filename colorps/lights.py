@@ -28,7 +28,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["LIGHT_FORMATS", "Lights", "read_lights", "write_lights"]
+__all__ = ["LIGHT_FORMATS", "Lights", "read_lights", "write_intensities", "write_lights"]
 
 #: File formats of :func:`read_lights` and :func:`write_lights`.
 LIGHT_FORMATS = (".txt", ".lp", ".json")
@@ -268,6 +268,18 @@ def write_lights(lights: Lights, path, *, names: Sequence[str] | None = None) ->
             zip(names, lights.directions, strict=True))
     else:
         text = "".join(f"{x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in lights.directions)
+    with atomic_target(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def write_intensities(lights: Lights, path) -> Path:
+    """Write the lights' intensities as ``.txt``, one "r g b" (one value per band)
+    per image: the file ``--light-intensities`` reads."""
+    from .io import atomic_target
+
+    path = Path(path)
+    text = "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in lights.intensities)
     with atomic_target(path) as tmp:
         tmp.write_text(text)
     return path

@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 
 from . import __version__
-from .calibrate import calibrate_lights, sphere_from_mask
+from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
@@ -46,7 +46,8 @@ from .io import (
     read_stack,
     top_code,
 )
-from .lights import LIGHT_FORMATS, read_lights, write_lights
+from .lights import LIGHT_FORMATS, read_lights, write_intensities, write_lights
+from .matte_lights import matte_sphere_lights, matte_table
 from .memory import TilePlan, plan_tiles, release_freed_memory
 from .options import Options
 from .outputs import (
@@ -538,42 +539,49 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
 
 def calibrate_lights_files(image_patterns: str | Sequence[str],
                            sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
-                           sphere_mask=None, encoding="auto", overwrite: bool = False):
-    """Light directions from mirror-sphere images, written as a light file.
+                           sphere_mask=None, matte: bool = False, encoding="auto",
+                           overwrite: bool = False):
+    """Lights from a sphere's images, written as a light file.
 
     Parameters
     ----------
     image_patterns : str or sequence of str
-        The mirror-sphere images, one per light, in capture order.
+        The sphere's images, one per light, in capture order.
     sphere : "auto", (cx, cy, r) or None
         The sphere's silhouette in pixels, or found with :func:`colorps.find_sphere`
         on the images (it needs the sphere's disk brighter than the background);
         None with ``sphere_mask``.
     out : str or Path
         ``.txt`` (one "x y z" per line), ``.lp`` (count, then "file x y z") or
-        ``.json``.
+        ``.json`` (directions and intensities).
     sphere_mask : str or Path, optional
         A mask image of the sphere (non-zero on it), for a dark sphere that
-        ``"auto"`` cannot find: the circle is the largest region's centroid and
-        the radius of its area (:func:`colorps.calibrate.sphere_from_mask`).
+        ``"auto"`` cannot find (:func:`colorps.calibrate.sphere_from_mask`).
+    matte : bool, optional
+        A matte sphere (:func:`colorps.matte_lights.matte_sphere_lights`), not a
+        mirror's highlights; into a ``.txt`` or ``.lp`` file its intensities go
+        to ``<stem>_intensities.txt`` beside it.
 
     Returns
     -------
-    (Lights, list of Highlight, (cx, cy, r))
+    (Lights, list of Highlight or MatteLight, (cx, cy, r), table lines, paths written)
     """
     out = Path(out)
     if out.suffix.lower() not in LIGHT_FORMATS:
         raise InputError(f"{out}: light files are {', '.join(LIGHT_FORMATS)}")
-    if out.exists() and not overwrite:
-        raise OutputError(f"{out}: already exists; use --overwrite to replace it")
+    beside = matte and out.suffix.lower() != ".json"  # where the intensities go
+    targets = [out, out.with_name(f"{out.stem}_intensities.txt")] if beside else [out]
+    for target in (t for t in targets if t.exists() and not overwrite):
+        raise OutputError(f"{target}: already exists; use --overwrite to replace it")
     if not out.parent.is_dir():
         raise OutputError(f"{out.parent}: output folder does not exist")
-    paths = expand_paths(image_patterns, name="mirror sphere")
-    info = check_stack_files(paths, name="mirror sphere")[0]
+    what = "matte sphere" if matte else "mirror sphere"
+    paths = expand_paths(image_patterns, name=what)
+    info = check_stack_files(paths, name=what)[0]
     if (sphere is None) == (sphere_mask is None):
-        raise InputError("give the mirror sphere's circle (--sphere) or its mask "
+        raise InputError(f"give the {what}'s circle (--sphere) or its mask "
                          "(--sphere-mask), one of them")
-    stack, _ = read_stack(paths, encoding, name="mirror sphere")
+    stack, _ = read_stack(paths, encoding, name=what)
     if sphere_mask is not None:
         try:
             found_sphere = sphere_from_mask(read_mask(sphere_mask, stack.shape[1:3]))
@@ -581,8 +589,12 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
             raise InputError(f"{sphere_mask}: {exc}") from None
     else:
         found_sphere = find_sphere(stack) if sphere == "auto" else tuple(sphere)
-    clip_level, _ = input_levels(info, encoding)
-    lights, found = calibrate_lights(stack, found_sphere, clip_level=clip_level,
-                                     names=[p.name for p in paths])
+    names = [p.name for p in paths]
+    fit, table = (matte_sphere_lights, matte_table) if matte else \
+        (calibrate_lights, highlight_table)
+    lights, found = fit(stack, found_sphere, clip_level=input_levels(info, encoding)[0],
+                        names=names)
     write_lights(lights, out)
-    return lights, found, found_sphere
+    if len(targets) > 1:
+        write_intensities(lights, targets[1])
+    return lights, found, found_sphere, table(names, found), targets

@@ -1,0 +1,164 @@
+"""Light directions and intensities from a matte sphere: a Lambertian fit per image.
+
+A distant light of direction l and intensity E_b in band b shows on a matte
+(Lambertian) sphere of albedo a_b as I_b(n) = a_b E_b max(n . l, 0) at the
+pixel of normal n (:func:`colorps.geometry.sphere_normals`). Over the lit part
+of the sphere this is linear in the vector s_b = a_b E_b l, so each image's
+light is a least-squares fit:
+
+* the direction from the bands' sum, on the pixels where the fitted shading
+  n . l is at least MIN_COSINE (the terminator, where a real finish and the
+  light's size depart from max(n . l, 0) most, is left out), refitted
+  FIT_ROUNDS times as that set moves with the direction;
+* each band's intensity E_b = (sum I_b n . l) / (a_b sum (n . l)^2) over the
+  same pixels.
+
+This is what a capture with a gauge of another finish than the scene's needs:
+its lights, for a virtual gauge of the scene's own fitted finish (``colorps
+reconstruct --lights``). The fit assumes the sphere is Lambertian: a rough or
+glossy sphere biases the direction towards where its shading departs from the
+cosine, and :attr:`MatteLight.residual` (the fit's relative RMS residual) says
+how far it departs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .geometry import sphere_normals
+from .lights import MIN_ELEVATION_Z, Lights
+
+__all__ = ["MatteLight", "matte_sphere_lights", "matte_table"]
+
+# ---------------------------------------------------------------- tuning
+#: Pixels farther out than this fraction of the radius are left out (the
+#: silhouette's sub-pixel error and the blur of the edge).
+RIM_FRACTION = 0.95
+#: Pixels whose fitted cosine of incidence is below this are left out.
+MIN_COSINE = 0.15
+#: The first fit takes the pixels above this fraction of the image's brightest.
+FIRST_LEVEL = 0.3
+#: Fits with the lit set of the previous one (it settles in 2-3).
+FIT_ROUNDS = 5
+#: An image needs this many lit pixels on the sphere.
+MIN_LIT_PIXELS = 30
+
+
+@dataclass(frozen=True)
+class MatteLight:
+    """What one image of a matte sphere gave.
+
+    Attributes
+    ----------
+    direction : (3,) ndarray
+        Unit vector towards the light (camera space).
+    intensity : (c,) ndarray
+        Per band, relative to the sphere's albedo (1 for a white one).
+    pixels : int
+        Lit pixels the fit used.
+    residual : float
+        RMS of the fit's residuals over the RMS of the values (0 on a Lambertian
+        sphere without noise; a few per cent on real matte paint).
+    """
+
+    direction: np.ndarray
+    intensity: np.ndarray
+    pixels: int
+    residual: float
+
+
+def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0,
+                        clip_level: float | None = None, names=None
+                        ) -> tuple[Lights, list[MatteLight]]:
+    """Lights of a capture from its images of a matte sphere (see the module docstring).
+
+    Parameters
+    ----------
+    stack : (m, H, W, c) or (m, H, W) array_like
+        Linear images of the sphere, one per light.
+    sphere : (cx, cy, r)
+        Its silhouette, pixels.
+    albedo : float or (c,) array_like, optional
+        The sphere's albedo per band (intensities are relative to it).
+    clip_level : float, optional
+        Values at or above it (saturated) are left out.
+    names : sequence of str, optional
+        Image names, for errors and the returned :class:`~colorps.Lights`.
+
+    Returns
+    -------
+    Lights
+        Directions and per-band intensities in image order.
+    list of MatteLight
+        What each image gave.
+
+    Raises
+    ------
+    InputError
+        An image with too few lit pixels on the sphere, or whose light comes
+        from behind the object.
+    """
+    images = np.asarray(stack, dtype=np.float64)
+    if images.ndim == 3:
+        images = images[..., None]
+    if images.ndim != 4:
+        raise InputError(f"matte sphere: expected (m, H, W[, c]) images, got {images.shape}")
+    names = list(names) if names is not None else [f"image {k}" for k in range(len(images))]
+    normals, rho = sphere_normals(images.shape[1:3], *sphere)
+    inside = rho <= RIM_FRACTION
+    bands = images.shape[3]
+    albedo = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (bands,))
+    found = [_fit_image(image[inside], normals[inside], albedo, clip_level, name)
+             for image, name in zip(images, names, strict=True)]
+    lights = Lights(np.array([f.direction for f in found]),
+                    np.array([f.intensity for f in found]), names=tuple(names))
+    return lights, found
+
+
+def _fit_image(values: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+               clip_level: float | None, name: str) -> MatteLight:
+    """The light of one image from its (P, c) values at (P, 3) sphere normals."""
+    usable = np.isfinite(values).all(axis=1)
+    if clip_level is not None:
+        usable &= (values < clip_level).all(axis=1)
+    total = np.where(usable, values.sum(axis=1), 0.0)
+    lit = usable & (total >= FIRST_LEVEL * total.max()) if total.max() > 0 else usable & False
+    vector = np.zeros(3)
+    for _ in range(FIT_ROUNDS):
+        if lit.sum() < MIN_LIT_PIXELS:
+            raise InputError(f"{name}: only {int(lit.sum())} lit pixels on the matte "
+                             f"sphere (need {MIN_LIT_PIXELS}); is the light on, the sphere "
+                             "in the picture and not saturated?")
+        vector = np.linalg.lstsq(normals[lit], total[lit], rcond=None)[0]
+        strength = np.linalg.norm(vector)
+        if strength == 0:
+            break
+        lit = usable & (normals @ vector >= MIN_COSINE * strength)
+    strength = np.linalg.norm(vector)
+    direction = vector / strength if strength > 0 else vector
+    if not direction[2] >= MIN_ELEVATION_Z:
+        raise InputError(f"{name}: the matte sphere's shading gives a light from behind "
+                         f"the object (direction {np.round(direction, 3).tolist()})")
+    cosine = normals[lit] @ direction
+    shown = values[lit]
+    intensity = (shown * cosine[:, None]).sum(axis=0) / (cosine ** 2).sum()
+    fitted = cosine[:, None] * intensity[None, :]
+    residual = float(np.sqrt(np.mean((shown - fitted) ** 2) / np.mean(shown ** 2)))
+    return MatteLight(direction, np.maximum(intensity / albedo, 1e-12), int(lit.sum()),
+                      residual)
+
+
+def matte_table(names, found: list[MatteLight]) -> list[str]:
+    """calibrate-lights --matte's table: per image the direction, the intensity
+    per band and how Lambertian the sphere looked (relative RMS residual)."""
+    lines = [f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>6s} "
+             f"{'resid':>6s}  intensity"]
+    for name, f in zip(names, found, strict=True):
+        x, y, z = f.direction
+        lines.append(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
+                     f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:6d} "
+                     f"{f.residual:6.3f}  " + " ".join(f"{v:.4g}" for v in f.intensity))
+    return lines
