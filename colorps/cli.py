@@ -563,7 +563,7 @@ def _options(args) -> Options:
 def _batch(args) -> int:
     """Colorps batch: every capture, a table, exit code 1 if any failed."""
     from .batch import find_capture, read_manifest, run_batch
-    from .pipeline import dask_client
+    from .tiles import dask_client
 
     captures = [find_capture(folder) for folder in args.folders]
     if args.manifest:

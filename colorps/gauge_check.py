@@ -34,8 +34,8 @@ from .errors import EncodingWarning, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
 
-__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "lights_fit",
-           "sphere_fit"]
+__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "hint_finish",
+           "lambertian_fit", "lights_fit", "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -52,6 +52,14 @@ LIT_FRACTION = 0.1
 FIT_ROUNDS = 3
 #: Scene pixels sampled for :func:`lights_fit`.
 LIGHTS_FIT_PIXELS = 4000
+#: :func:`hint_finish` speaks when the scene matches the gauge at a median of
+#: more than FINISH_HINT_SCALE noise units (the run's model scale: about 1 where
+#: the gauge's finish is the scene's; 3.9-4.1 for a rough scene against a
+#: Lambertian gauge, 6.1 for a glossy scene and gauge, 1.3 for a varnished
+#: scene) while the gauge shades like a matte sphere, its :func:`sphere_fit`
+#: under MATTE_FIT (Lambertian 0.01, rough 0.05, glossy 0.07 and more).
+FINISH_HINT_SCALE = 2.5
+MATTE_FIT = 0.03
 
 
 def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
@@ -80,29 +88,37 @@ def _sphere_fit_pixels(pixels: np.ndarray, normals: np.ndarray) -> float:
                              min_lit=10)
 
 
-def _lambert_residual(values: np.ndarray, design: np.ndarray, min_lit: int) -> float:
-    """Median over the rows of ``values`` (R, K) of the relative RMS residual of a
-    Lambertian fit: each row r is fitted as design @ x_r (``design`` (K, 3): the
+def lambertian_fit(values: np.ndarray, design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row of ``values`` (R, K) fitted as design @ x_r (``design`` (K, 3): the
     normals of a gauge's pixels, or the directions of the lights) by least
     squares on its lit entries, FIT_ROUNDS times, an entry lit where the fit
     gives it at least LIT_FRACTION of |x_r| (at first: of the row's largest
-    value); rows left with fewer than ``min_lit`` lit entries do not count.
-    The residual is sqrt(sum r^2 / sum I^2) over the lit entries; NaN when no
-    row counts."""
+    value). Non-finite entries take no part. Returns x (R, 3) and the lit
+    entries (R, K) of the last fit."""
     finite = np.isfinite(values)
     values = np.where(finite, values, 0.0)
     lit = finite & (values > LIT_FRACTION * values.max(axis=1, keepdims=True))
+    x = np.zeros((len(values), 3))
     for _ in range(FIT_ROUNDS):
         weight = lit.astype(np.float64)
         normal = np.einsum("rk,ka,kb->rab", weight, design, design) + 1e-12 * np.eye(3)
         x = np.linalg.solve(normal, np.einsum("rk,ka,rk->ra", weight, design,
                                               values)[..., None])[..., 0]
-        shade = x @ design.T  # (R, K)
-        lit = finite & (shade > LIT_FRACTION * np.linalg.norm(x, axis=1, keepdims=True))
+        lit = finite & (x @ design.T > LIT_FRACTION * np.linalg.norm(x, axis=1, keepdims=True))
+    return x, lit
+
+
+def _lambert_residual(values: np.ndarray, design: np.ndarray, min_lit: int) -> float:
+    """Median over the rows of ``values`` (R, K) of the relative RMS residual of
+    their :func:`lambertian_fit`; rows with fewer than ``min_lit`` lit entries
+    do not count. The residual is sqrt(sum r^2 / sum I^2) over the lit entries;
+    NaN when no row counts."""
+    x, lit = lambertian_fit(values, design)
+    values = np.where(np.isfinite(values), values, 0.0)
     enough = lit.sum(axis=1) >= min_lit
     if not enough.any():
         return float("nan")
-    r2 = np.where(lit, (values - shade) ** 2, 0.0).sum(axis=1)
+    r2 = np.where(lit, (values - x @ design.T) ** 2, 0.0).sum(axis=1)
     i2 = np.where(lit, values ** 2, 0.0).sum(axis=1)
     return float(np.median(np.sqrt(r2[enough] / np.maximum(i2[enough], 1e-30))))
 
@@ -260,3 +276,21 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
             "are not swapped, --sphere, and that the gauge is not a mirror ball",
             GaugeWarning, stacklevel=3)
     return record
+
+
+def hint_finish(model_scale: float, record: dict, first_file: Path) -> None:
+    """Warn when a gauge-mode run looks like a scene of another finish than its
+    matte gauge's (FINISH_HINT_SCALE, MATTE_FIT), naming the way out: the
+    gauge's lights (``calibrate-lights --matte``) for a virtual gauge of the
+    scene's own finish. ``record`` is :func:`check_gauge`'s."""
+    fit = record.get("sphere_fit_residual")
+    if not (model_scale > FINISH_HINT_SCALE and fit is not None and fit < MATTE_FIT):
+        return
+    warnings.warn(
+        f"{first_file}: the scene matches the gauge at {model_scale:.1f} noise units "
+        f"(median; about 1 where the gauge explains it), though the gauge shades like a "
+        f"matte sphere (Lambertian fit residual {fit:.3f}): if the scene's finish differs "
+        "from the gauge's, every normal is biased alike. Measure the lights on the gauge "
+        "(colorps calibrate-lights 'GAUGE_IMAGES' --sphere ... --matte --out lights.json) "
+        "and reconstruct with --lights lights.json, which fits the scene's own finish",
+        GaugeWarning, stacklevel=3)

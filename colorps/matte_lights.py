@@ -2,16 +2,15 @@
 
 A distant light of direction l and intensity E_b in band b shows on a matte
 (Lambertian) sphere of albedo a_b as I_b(n) = a_b E_b max(n . l, 0) at the
-pixel of normal n (:func:`colorps.geometry.sphere_normals`). Over the lit part
-of the sphere this is linear in the vector s_b = a_b E_b l, so each image's
-light is a least-squares fit:
-
-* the direction from the bands' sum, on the pixels where the fitted shading
-  n . l is at least MIN_COSINE (the terminator, where a real finish and the
-  light's size depart from max(n . l, 0) most, is left out), refitted
-  FIT_ROUNDS times as that set moves with the direction;
-* each band's intensity E_b = (sum I_b n . l) / (a_b sum (n . l)^2) over the
-  same pixels.
+pixel of normal n (:class:`colorps.Gauge`'s normals within its rim margin). Over
+the lit part of the sphere this is linear in s = sum_b a_b E_b l, so each
+image's light is the least-squares fit of the bands' sum that
+:func:`colorps.gauge_check.lambertian_fit` makes (the fit by which colorps
+checks that gauge images show a lit sphere), on the pixels it lights at a
+cosine of at least its LIT_FRACTION (the terminator, where a real finish and
+the light's size depart from max(n . l, 0) most, is left out). Each band's
+intensity is then E_b = (sum I_b n . l) / (a_b sum (n . l)^2) over the same
+pixels.
 
 This is what a capture with a gauge of another finish than the scene's needs:
 its lights, for a virtual gauge of the scene's own fitted finish (``colorps
@@ -28,21 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .geometry import sphere_normals
+from .gauge import Gauge
+from .gauge_check import lambertian_fit
 from .lights import MIN_ELEVATION_Z, Lights
 
 __all__ = ["MatteLight", "matte_sphere_lights", "matte_table"]
 
 # ---------------------------------------------------------------- tuning
-#: Pixels farther out than this fraction of the radius are left out (the
-#: silhouette's sub-pixel error and the blur of the edge).
-RIM_FRACTION = 0.95
-#: Pixels whose fitted cosine of incidence is below this are left out.
-MIN_COSINE = 0.15
-#: The first fit takes the pixels above this fraction of the image's brightest.
-FIRST_LEVEL = 0.3
-#: Fits with the lit set of the previous one (it settles in 2-3).
-FIT_ROUNDS = 5
 #: An image needs this many lit pixels on the sphere.
 MIN_LIT_PIXELS = 30
 
@@ -107,48 +98,38 @@ def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0
     if images.ndim != 4:
         raise InputError(f"matte sphere: expected (m, H, W[, c]) images, got {images.shape}")
     names = list(names) if names is not None else [f"image {k}" for k in range(len(images))]
-    normals, rho = sphere_normals(images.shape[1:3], *sphere)
-    inside = rho <= RIM_FRACTION
-    bands = images.shape[3]
-    albedo = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (bands,))
-    found = [_fit_image(image[inside], normals[inside], albedo, clip_level, name)
-             for image, name in zip(images, names, strict=True)]
+    gauge = Gauge.from_sphere(images.shape[1:3], *sphere)
+    values = images[:, gauge.mask]  # (m, P, c)
+    if clip_level is not None:
+        values = np.where((values < clip_level).all(axis=2, keepdims=True), values, np.nan)
+    normals = gauge.normals[gauge.mask]
+    vectors, lit = lambertian_fit(values.sum(axis=2), normals)
+    albedo = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (images.shape[3],))
+    found = [_light(values[k, lit[k]], normals[lit[k]], vectors[k], albedo, name)
+             for k, name in enumerate(names)]
     lights = Lights(np.array([f.direction for f in found]),
                     np.array([f.intensity for f in found]), names=tuple(names))
     return lights, found
 
 
-def _fit_image(values: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
-               clip_level: float | None, name: str) -> MatteLight:
-    """The light of one image from its (P, c) values at (P, 3) sphere normals."""
-    usable = np.isfinite(values).all(axis=1)
-    if clip_level is not None:
-        usable &= (values < clip_level).all(axis=1)
-    total = np.where(usable, values.sum(axis=1), 0.0)
-    lit = usable & (total >= FIRST_LEVEL * total.max()) if total.max() > 0 else usable & False
-    vector = np.zeros(3)
-    for _ in range(FIT_ROUNDS):
-        if lit.sum() < MIN_LIT_PIXELS:
-            raise InputError(f"{name}: only {int(lit.sum())} lit pixels on the matte "
-                             f"sphere (need {MIN_LIT_PIXELS}); is the light on, the sphere "
-                             "in the picture and not saturated?")
-        vector = np.linalg.lstsq(normals[lit], total[lit], rcond=None)[0]
-        strength = np.linalg.norm(vector)
-        if strength == 0:
-            break
-        lit = usable & (normals @ vector >= MIN_COSINE * strength)
-    strength = np.linalg.norm(vector)
-    direction = vector / strength if strength > 0 else vector
+def _light(shown: np.ndarray, normals: np.ndarray, vector: np.ndarray, albedo: np.ndarray,
+           name: str) -> MatteLight:
+    """One image's light from its (P, c) lit values at their (P, 3) normals and the
+    fitted vector of the bands' sum."""
+    if len(shown) < MIN_LIT_PIXELS:
+        raise InputError(f"{name}: only {len(shown)} lit pixels on the matte sphere (need "
+                         f"{MIN_LIT_PIXELS}); is the light on, the sphere in the picture "
+                         "and not saturated?")
+    direction = vector / np.linalg.norm(vector)
     if not direction[2] >= MIN_ELEVATION_Z:
         raise InputError(f"{name}: the matte sphere's shading gives a light from behind "
                          f"the object (direction {np.round(direction, 3).tolist()})")
-    cosine = normals[lit] @ direction
-    shown = values[lit]
+    cosine = normals @ direction
     intensity = (shown * cosine[:, None]).sum(axis=0) / (cosine ** 2).sum()
-    fitted = cosine[:, None] * intensity[None, :]
-    residual = float(np.sqrt(np.mean((shown - fitted) ** 2) / np.mean(shown ** 2)))
-    return MatteLight(direction, np.maximum(intensity / albedo, 1e-12), int(lit.sum()),
-                      residual)
+    residual = np.sqrt(np.mean((shown - cosine[:, None] * intensity) ** 2)
+                       / np.mean(shown ** 2))
+    return MatteLight(direction, np.maximum(intensity / albedo, 1e-12), len(shown),
+                      float(residual))
 
 
 def matte_table(names, found: list[MatteLight]) -> list[str]:

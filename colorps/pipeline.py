@@ -14,7 +14,6 @@ make the gauge (photographed: :meth:`colorps.Gauge.from_sphere`; rendered:
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import sys
 import time
@@ -32,7 +31,7 @@ from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
-from .gauge_check import check_gauge, check_lights
+from .gauge_check import check_gauge, check_lights, hint_finish
 from .hygiene import check_contents, check_names, relative_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -62,17 +61,15 @@ from .pairing import check_natural_order, pair_lights, pairing_record
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock
-from .tiles import StackFiles, reconstruct_tiled
+from .tiles import StackFiles, dask_client, reconstruct_tiled
 from .virtual import view_corrected, virtual_gauge
 
-__all__ = ["calibrate_lights_files", "dask_client", "integrate_file", "reconstruct_files"]
+__all__ = ["calibrate_lights_files", "integrate_file", "reconstruct_files"]
 
 #: A normal map's finite pixels must be unit vectors within this (half-float
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
 UNIT_TOLERANCE = 0.01
 MAX_NON_UNIT_FRACTION = 0.01
-#: Seconds to wait for a Dask scheduler given by address.
-SCHEDULER_TIMEOUT = 10
 #: Scene and gauge exposures (EXIF) that differ by more than this fraction,
 #: between lights or overall, are warned about (nominal shutter speeds alike
 #: compare exactly; a third of a stop is 26 %).
@@ -162,7 +159,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
                                              (stacks.light_set, virtual, inputs.camera),
                                              progress)
-    _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+    _check_solved(result, stacks, inputs, checked)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
     report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
     report["matched_along_rays"] = along_rays
@@ -440,45 +437,23 @@ def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
     return ratios
 
 
-@contextlib.contextmanager
-def dask_client(scheduler):
-    """A context of a Dask client: None (no scheduler), the given client, or one
-    connected to a scheduler address / a local cluster started for "local"."""
-    if scheduler is None or not isinstance(scheduler, str):
-        yield scheduler
-        return
-    try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError:
-        raise InputError("--scheduler needs Dask: pip install 'colorps[dask]'") from None
-    if scheduler == "local":
-        with LocalCluster(dashboard_address=None) as cluster, Client(cluster) as client:
-            yield client
-        return
-    try:
-        client = Client(scheduler, timeout=SCHEDULER_TIMEOUT)
-    except ValueError as error:  # an address Dask cannot read (http://, a typo)
-        raise InputError(f"--scheduler {scheduler}: not a Dask scheduler address ({error}); "
-                         "give tcp://HOST:8786, or 'local'") from None
-    except (OSError, TimeoutError) as error:
-        raise InputError(f"--scheduler {scheduler}: cannot connect ({error})") from None
-    with client:
-        yield client
-
-
-def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:
-    """Refuse a run that solved nothing, saying why."""
+def _check_solved(result: Reconstruction, stacks: _Stacks, inputs: CaptureFiles,
+                  gauge_record: dict | None) -> None:
+    """Refuse a run that solved nothing, saying why; else, in gauge mode, say when
+    the gauge's finish may not be the scene's (:func:`gauge_check.hint_finish`)."""
     stats = result.stats
     if stats.solved:
+        if inputs.lights is None:
+            hint_finish(stats.model_scale, gauge_record, stacks.gauge_paths[0])
         return
     reasons = {k: v for k, v in stats.pixels_by_reason.items() if v and k != "background"}
-    where = f"mask {mask_path}" if mask_path else "the scene"
-    if stats.table_size == 0 and gauge_paths:
-        raise InputError(f"{gauge_paths[0]}: no gauge pixel has every band usable "
+    if stats.table_size == 0 and stacks.gauge_paths:
+        raise InputError(f"{stacks.gauge_paths[0]}: no gauge pixel has every band usable "
                          "(clipped, too dark or invalid), so nothing can be matched; check "
                          "the gauge images and --sphere")
     worst = max(reasons, key=reasons.get) if reasons else "background"
-    raise InputError(f"{scene_paths[0]}: no pixel of {where} could be solved (mostly "
+    where = f"mask {inputs.mask}" if inputs.mask else "the scene"
+    raise InputError(f"{stacks.scene_paths[0]}: no pixel of {where} could be solved (mostly "
                      f"'{worst}': {reasons.get(worst, 0)} pixels); see --dark-level, "
                      "--clip-level and --max-residual")
 

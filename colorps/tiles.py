@@ -31,6 +31,7 @@ covers captures with up to about 16 lights, results are identical.
 
 from __future__ import annotations
 
+import contextlib
 import time
 import warnings
 from dataclasses import dataclass
@@ -49,7 +50,10 @@ from .resolve import Resolved, resolve
 from .results import Reconstruction, combine_statistics
 from .tables import GaugeTables
 
-__all__ = ["StackFiles", "reconstruct_tiled"]
+__all__ = ["StackFiles", "dask_client", "reconstruct_tiled"]
+
+#: Seconds to wait for a Dask scheduler given by address.
+SCHEDULER_TIMEOUT = 10
 
 
 @dataclass(frozen=True)
@@ -264,3 +268,29 @@ class _Joined:
 #: The maps of a Reconstruction a tiled run joins, in its field order.
 _MAPS = ("normals", "albedo", "quality", "uncertainty", "solved", "reason", "bands_used",
          "dropped_lights")
+
+
+@contextlib.contextmanager
+def dask_client(scheduler):
+    """A context of a Dask client: None (no scheduler), the given client, or one
+    connected to a scheduler address / a local cluster started for "local"."""
+    if scheduler is None or not isinstance(scheduler, str):
+        yield scheduler
+        return
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("--scheduler needs Dask: pip install 'colorps[dask]'") from None
+    if scheduler == "local":
+        with LocalCluster(dashboard_address=None) as cluster, Client(cluster) as client:
+            yield client
+        return
+    try:
+        client = Client(scheduler, timeout=SCHEDULER_TIMEOUT)
+    except ValueError as error:  # an address Dask cannot read (http://, a typo)
+        raise InputError(f"--scheduler {scheduler}: not a Dask scheduler address ({error}); "
+                         "give tcp://HOST:8786, or 'local'") from None
+    except (OSError, TimeoutError) as error:
+        raise InputError(f"--scheduler {scheduler}: cannot connect ({error})") from None
+    with client:
+        yield client

@@ -86,6 +86,8 @@ def test_a_gauge_of_another_finish_through_its_lights(tmp_path, capsys):
 
     assert main([*common, "--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto",
                  "--out", str(tmp_path / "by_gauge")]) == 0
+    hint = capsys.readouterr().err  # the run says which way out there is
+    assert "gauge_00.exr" in hint and "--matte" in hint and "noise units" in hint
     assert main(["calibrate-lights", str(tmp_path / "gauge_*.exr"), "--sphere", "auto",
                  "--matte", "--out", str(tmp_path / "lights.txt")]) == 0
     said = capsys.readouterr().out
@@ -104,3 +106,17 @@ def test_a_gauge_of_another_finish_through_its_lights(tmp_path, capsys):
     assert len(json.loads((tmp_path / "lights.json").read_text())["intensities"][0]) == 3
     assert not (tmp_path / "lights_intensities_intensities.txt").exists()
     assert not (tmp_path / "lights.json_intensities.txt").exists()
+
+
+def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
+    """The same capture with a Lambertian scene: no word of another finish."""
+    lighting, _ = coloured_lights(16)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lighting, noise=0.002, seed=2)
+    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
+        write_image(tmp_path / f"scene_{k:02d}.exr", image)
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
+                 str(tmp_path / "gauge_*.exr"), "--sphere", "auto", "--quiet",
+                 "--no-height", "--out", str(tmp_path / "out")]) == 0
+    assert "--matte" not in capsys.readouterr().err
