@@ -167,6 +167,9 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
                              f"auto: fitted to the gauge (default: {_shown(_DEFAULTS.gain)})")
     parser.add_argument("--no-band-weights", dest="band_weights", action="store_false",
                         help="colour mode: weigh every band alike, however dark")
+    parser.add_argument("--no-finish-check", dest="finish_check", action="store_false",
+                        help="keep the gauge's result even when the scene's finish looks "
+                             "another (see the user guide)")
     parser.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
                         help="do not re-solve shadowed or highlighted pixels from the "
                              "lights that reach them")

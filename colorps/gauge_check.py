@@ -34,8 +34,8 @@ from .errors import EncodingWarning, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
 
-__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "hint_finish",
-           "lambertian_fit", "lights_fit", "sphere_fit"]
+__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "finish_differs",
+           "judge_finish", "lambertian_fit", "lights_fit", "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -52,7 +52,7 @@ LIT_FRACTION = 0.1
 FIT_ROUNDS = 3
 #: Scene pixels sampled for :func:`lights_fit`.
 LIGHTS_FIT_PIXELS = 4000
-#: :func:`hint_finish` speaks when the scene matches the gauge at a median of
+#: :func:`finish_differs` holds when the scene matches the gauge at a median of
 #: more than FINISH_HINT_SCALE noise units (the run's model scale: about 1 where
 #: the gauge's finish is the scene's; 3.9-4.1 for a rough scene against a
 #: Lambertian gauge, 6.1 for a glossy scene and gauge, 1.3 for a varnished
@@ -60,6 +60,9 @@ LIGHTS_FIT_PIXELS = 4000
 #: under MATTE_FIT (Lambertian 0.01, rough 0.05, glossy 0.07 and more).
 FINISH_HINT_SCALE = 2.5
 MATTE_FIT = 0.03
+#: The solution with the gauge's lights and the scene's own finish is taken when
+#: its median residual (noise units) is under this fraction of the gauge's.
+CLEARLY_BETTER = 0.5
 
 
 def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
@@ -278,19 +281,31 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
     return record
 
 
-def hint_finish(model_scale: float, record: dict, first_file: Path) -> None:
-    """Warn when a gauge-mode run looks like a scene of another finish than its
-    matte gauge's (FINISH_HINT_SCALE, MATTE_FIT), naming the way out: the
-    gauge's lights (``calibrate-lights --matte``) for a virtual gauge of the
-    scene's own finish. ``record`` is :func:`check_gauge`'s."""
+def finish_differs(model_scale: float, record: dict) -> bool:
+    """A gauge-mode run that looks like a scene of another finish than its matte
+    gauge's (FINISH_HINT_SCALE, MATTE_FIT); ``record`` is :func:`check_gauge`'s."""
     fit = record.get("sphere_fit_residual")
-    if not (model_scale > FINISH_HINT_SCALE and fit is not None and fit < MATTE_FIT):
-        return
-    warnings.warn(
-        f"{first_file}: the scene matches the gauge at {model_scale:.1f} noise units "
-        f"(median; about 1 where the gauge explains it), though the gauge shades like a "
-        f"matte sphere (Lambertian fit residual {fit:.3f}): if the scene's finish differs "
-        "from the gauge's, every normal is biased alike. Measure the lights on the gauge "
-        "(colorps calibrate-lights 'GAUGE_IMAGES' --sphere ... --matte --out lights.json) "
-        "and reconstruct with --lights lights.json, which fits the scene's own finish",
-        GaugeWarning, stacklevel=3)
+    return bool(model_scale > FINISH_HINT_SCALE and fit is not None and fit < MATTE_FIT)
+
+
+def judge_finish(record: dict, first_file: Path) -> bool:
+    """Whether a run whose scene the matte gauge explained poorly takes the
+    solution with the gauge's lights and the scene's own finish: its median
+    residual is under CLEARLY_BETTER of the gauge's (both in ``record``, noise
+    units; ``taken`` is added). Warns of what was done."""
+    gauge, own = record["residual_with_gauge"], record["residual_with_gauge_lights"]
+    record["taken"] = bool(own < CLEARLY_BETTER * gauge)
+    if record["taken"]:
+        said = (f"the scene matches the gauge at {gauge:.1f} noise units (median; about "
+                "1 where the gauge explains it), though the gauge shades like a matte "
+                "sphere: its finish is not the scene's. Solved instead with the lights "
+                "measured on the gauge and the scene's own fitted finish (as calibrate-"
+                f"lights --matte and --lights would), which matches at {own:.1f}; "
+                "report.json's gauge_check.finish says so")
+    else:
+        said = (f"the scene matches the gauge at {gauge:.1f} noise units (median), though "
+                "the gauge shades like a matte sphere; the lights measured on it with the "
+                f"scene's own fitted finish did no better ({own:.1f}), so the gauge's "
+                "result is kept: check that scene and gauge share their lights")
+    warnings.warn(f"{first_file}: {said}", GaugeWarning, stacklevel=3)
+    return record["taken"]

@@ -134,6 +134,13 @@ class Options:
         own observations, twice: at a Lambertian gauge's normals, then at the
         first fit's (:mod:`colorps.brdf`); "lambert":
         an ideal matte finish.
+    finish_check : bool
+        Files, gauge mode: when the scene matches a matte gauge far worse than
+        its noise explains (:func:`colorps.gauge_check.finish_differs`: the
+        gauge's finish is not the scene's), solve it again with the lights
+        measured on the gauge and the scene's own fitted finish
+        (:func:`colorps.virtual.with_gauge_lights`), and keep that when it
+        matches clearly better (:func:`colorps.gauge_check.judge_finish`).
     tile : int or None
         Files only: process the scene in bands of this many rows, each read
         from the files when needed (:mod:`colorps.tiles`); the same maps as an
@@ -168,6 +175,7 @@ class Options:
     viewer: bool = True
     max_input_gib: float = 8.0
     brdf: Literal["fitted", "lambert"] = "fitted"
+    finish_check: bool = True
     tile: int | None = None
     memory_limit_gib: float | Literal["auto"] | None = "auto"
 

@@ -31,7 +31,7 @@ from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
 from .errors import ExposureWarning, InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
-from .gauge_check import check_gauge, check_lights, hint_finish
+from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
 from .hygiene import check_contents, check_names, relative_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -62,7 +62,7 @@ from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock
 from .tiles import StackFiles, dask_client, reconstruct_tiled
-from .virtual import view_corrected, virtual_gauge
+from .virtual import view_corrected, virtual_gauge, with_gauge_lights
 
 __all__ = ["calibrate_lights_files", "integrate_file", "reconstruct_files"]
 
@@ -159,7 +159,11 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
                                              (stacks.light_set, virtual, inputs.camera),
                                              progress)
-    _check_solved(result, stacks, inputs, checked)
+    _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+    if inputs.lights is None and run.options.finish_check and \
+            finish_differs(result.stats.model_scale, checked):
+        result, run, virtual = _with_gauge_lights(result, stacks, gauge_stack, gauge, run,
+                                                  mask, inputs, plan, checked, progress)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
     report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
     report["matched_along_rays"] = along_rays
@@ -437,25 +441,43 @@ def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
     return ratios
 
 
-def _check_solved(result: Reconstruction, stacks: _Stacks, inputs: CaptureFiles,
-                  gauge_record: dict | None) -> None:
-    """Refuse a run that solved nothing, saying why; else, in gauge mode, say when
-    the gauge's finish may not be the scene's (:func:`gauge_check.hint_finish`)."""
+def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:
+    """Refuse a run that solved nothing, saying why."""
     stats = result.stats
     if stats.solved:
-        if inputs.lights is None:
-            hint_finish(stats.model_scale, gauge_record, stacks.gauge_paths[0])
         return
     reasons = {k: v for k, v in stats.pixels_by_reason.items() if v and k != "background"}
-    if stats.table_size == 0 and stacks.gauge_paths:
-        raise InputError(f"{stacks.gauge_paths[0]}: no gauge pixel has every band usable "
+    if stats.table_size == 0 and gauge_paths:
+        raise InputError(f"{gauge_paths[0]}: no gauge pixel has every band usable "
                          "(clipped, too dark or invalid), so nothing can be matched; check "
                          "the gauge images and --sphere")
     worst = max(reasons, key=reasons.get) if reasons else "background"
-    where = f"mask {inputs.mask}" if inputs.mask else "the scene"
-    raise InputError(f"{stacks.scene_paths[0]}: no pixel of {where} could be solved (mostly "
+    where = f"mask {mask_path}" if mask_path else "the scene"
+    raise InputError(f"{scene_paths[0]}: no pixel of {where} could be solved (mostly "
                      f"'{worst}': {reasons.get(worst, 0)} pixels); see --dark-level, "
                      "--clip-level and --max-residual")
+
+
+def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
+                       mask, inputs: CaptureFiles, plan: TilePlan, checked: dict,
+                       progress: bool):
+    """A run whose scene its matte gauge explains poorly (another finish), solved
+    again with the gauge's lights and the scene's own finish
+    (:func:`colorps.virtual.with_gauge_lights`; untiled, orthographic, the scene
+    read again), kept when it matches clearly better. Returns (result, settings,
+    the finish and its fits or None); ``checked["finish"]`` records both."""
+    if plan.rows is not None or inputs.camera is not None:
+        return result, run, None
+    scene, _ = _read_scene(stacks, run.options, plan, progress)
+    other, other_run, finish, _ = with_gauge_lights(scene, gauge_stack, gauge, run, mask=mask,
+                                                    radius=inputs.virtual_radius,
+                                                    progress=progress)
+    own = other.stats.residual_median_noise_units
+    record = dict(residual_with_gauge=result.stats.residual_median_noise_units,
+                  residual_with_gauge_lights=own, brdf=finish[0].as_dict())
+    checked["finish"] = record
+    taken = judge_finish(record, stacks.gauge_paths[0])
+    return (other, other_run, finish) if taken else (result, run, None)
 
 
 def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,

@@ -29,12 +29,13 @@ from .brdf import BRDF, fit_brdf
 from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
 from .lights import Lights
+from .matte_lights import matte_sphere_lights
 from .noise import estimate_noise
 from .options import Options
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 
-__all__ = ["fit_scene_brdf", "view_corrected", "virtual_gauge"]
+__all__ = ["fit_scene_brdf", "view_corrected", "virtual_gauge", "with_gauge_lights"]
 
 # ---------------------------------------------------------------- tuning
 #: fit_scene_brdf fits this many times: at the normals of a Lambertian gauge,
@@ -115,6 +116,23 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
                                        progress=progress)
     gauge = Gauge.virtual(lights, radius=radius, bands=scene.shape[3], brdf=brdf)
     return gauge, run, brdf, history
+
+
+def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
+                      run: Resolved, *, mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS,
+                      progress: bool = False):
+    """The scene solved with a virtual gauge under the lights measured on a matte
+    gauge (:func:`colorps.matte_lights.matte_sphere_lights`, intensities relative
+    to its albedo) and of the scene's own fitted finish: for a gauge whose finish
+    is not the scene's. Returns (the :class:`~colorps.Reconstruction`, its
+    settings, (the finish, its fits), the lights)."""
+    lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
+                                    clip_level=run.gauge_levels[0])
+    virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
+                                                  radius=radius, progress=progress)
+    result = reconstruct(scene, virtual.stack, virtual, settings, mask=mask,
+                         progress=progress)
+    return result, settings, (brdf, fits), lights
 
 
 def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = None, *,

@@ -64,52 +64,77 @@ def test_an_unlit_image_is_refused_by_name():
                                                               "gauge_02"])
 
 
-def test_a_gauge_of_another_finish_through_its_lights(tmp_path, capsys):
-    """A rough (Oren-Nayar) scene photographed with a Lambertian gauge: matched
-    against the gauge the normals are degrees off; calibrate-lights --matte on
-    the gauge, then --lights with the scene's own fitted finish, is as good as
-    a gauge of the scene's finish."""
+@pytest.fixture(scope="module")
+def rough_capture(tmp_path_factory):
+    """A rough (Oren-Nayar 0.3) smiley under 16 coloured lights, photographed with a
+    Lambertian gauge: a gauge of another finish than the scene's."""
+    folder = tmp_path_factory.mktemp("rough")
     lighting, colours = coloured_lights(16)
     scene = synth.smiley_surface(96)
     stack = synth.render(scene, lighting, brdf="oren-nayar", roughness=0.3, noise=0.002,
                          seed=2)
     for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
-        write_image(tmp_path / f"scene_{k:02d}.exr", image)
-        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
-    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
-    common = ["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--mask",
-              str(tmp_path / "mask.png"), "--quiet", "--no-height"]
+        write_image(folder / f"scene_{k:02d}.exr", image)
+        write_image(folder / f"gauge_{k:02d}.exr", ball)
+    write_image(folder / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    return folder, scene, lighting, colours
 
-    def error(folder):
-        normals = read_image(folder / "normal.exr")[0]
-        return float(np.nanmean(angular_error(normals[scene.mask], scene.normals[scene.mask])))
 
-    assert main([*common, "--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto",
-                 "--out", str(tmp_path / "by_gauge")]) == 0
-    hint = capsys.readouterr().err  # the run says which way out there is
-    assert "gauge_00.exr" in hint and "--matte" in hint and "noise units" in hint
-    assert main(["calibrate-lights", str(tmp_path / "gauge_*.exr"), "--sphere", "auto",
+def _error(folder, scene):
+    normals = read_image(folder / "normal.exr")[0]
+    return float(np.nanmean(angular_error(normals[scene.mask], scene.normals[scene.mask])))
+
+
+def _reconstruct(folder, out, *extra):
+    return main(["reconstruct", "--scene", str(folder / "scene_*.exr"), "--mask",
+                 str(folder / "mask.png"), "--quiet", "--no-height", "--out", str(out),
+                 *extra])
+
+
+def test_calibrate_lights_matte_writes_the_lights(rough_capture, tmp_path, capsys):
+    """calibrate-lights --matte on the gauge: the lights as rendered, for --lights
+    (what the default run below does by itself)."""
+    folder, _, lighting, colours = rough_capture
+    assert main(["calibrate-lights", str(folder / "gauge_*.exr"), "--sphere", "auto",
                  "--matte", "--out", str(tmp_path / "lights.txt")]) == 0
     said = capsys.readouterr().out
     assert "gauge_15.exr" in said and "lights_intensities.txt" in said
     lights = read_lights(tmp_path / "lights.txt", tmp_path / "lights_intensities.txt")
     assert angular_error(lights.directions, lighting.directions[:, 0]).max() < 0.1
     assert np.abs(lights.intensities / colours - 1).max() < 0.01
-    assert main([*common, "--lights", str(tmp_path / "lights.txt"), "--light-intensities",
-                 str(tmp_path / "lights_intensities.txt"),
-                 "--out", str(tmp_path / "by_lights")]) == 0
-    by_gauge, by_lights = error(tmp_path / "by_gauge"), error(tmp_path / "by_lights")
-    assert by_lights < 0.25 * by_gauge, (by_lights, by_gauge)
     # A .json light file holds the intensities itself; nothing is written beside it.
-    assert main(["calibrate-lights", str(tmp_path / "gauge_*.exr"), "--sphere", "auto",
+    assert main(["calibrate-lights", str(folder / "gauge_*.exr"), "--sphere", "auto",
                  "--matte", "--out", str(tmp_path / "lights.json")]) == 0
     assert len(json.loads((tmp_path / "lights.json").read_text())["intensities"][0]) == 3
-    assert not (tmp_path / "lights_intensities_intensities.txt").exists()
-    assert not (tmp_path / "lights.json_intensities.txt").exists()
+    assert sorted(p.name for p in tmp_path.glob("*intensities*")) == [
+        "lights_intensities.txt"]
+
+
+def test_a_gauge_of_another_finish_is_noticed_and_solved(rough_capture, tmp_path, capsys):
+    """Through the gauge alone (--no-finish-check) the normals are degrees off and
+    nothing shows it but the residual; by default colorps sees the scene match its
+    matte gauge at ~3 noise units, solves it again with the gauge's lights and its
+    own finish, keeps that (~0.7 noise units), and says so."""
+    folder, scene, _, _ = rough_capture
+    gauge = ["--gauge", str(folder / "gauge_*.exr"), "--sphere", "auto"]
+    assert _reconstruct(folder, tmp_path / "gauge_only", *gauge, "--no-finish-check") == 0
+    assert "finish" not in capsys.readouterr().err
+    assert _reconstruct(folder, tmp_path / "checked", *gauge) == 0
+    said = capsys.readouterr().err
+    assert "gauge_00.exr" in said and "Solved instead" in said
+    record = json.loads((tmp_path / "checked" / "report.json").read_text())
+    finish = record["gauge_check"]["finish"]
+    assert finish["taken"] and finish["residual_with_gauge_lights"] < 1.0 < 2.0 < \
+        finish["residual_with_gauge"]
+    assert record["brdf"]["roughness"] == 0.3
+    gauge_only = _error(tmp_path / "gauge_only", scene)
+    checked = _error(tmp_path / "checked", scene)
+    assert checked < 0.25 * gauge_only and checked < 0.3, (checked, gauge_only)
 
 
 def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
-    """The same capture with a Lambertian scene: no word of another finish."""
+    """The same capture with a Lambertian scene: no word of another finish, and the
+    gauge's result as it is."""
     lighting, _ = coloured_lights(16)
     scene = synth.smiley_surface(96)
     stack = synth.render(scene, lighting, noise=0.002, seed=2)
@@ -119,4 +144,6 @@ def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
     assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
                  str(tmp_path / "gauge_*.exr"), "--sphere", "auto", "--quiet",
                  "--no-height", "--out", str(tmp_path / "out")]) == 0
-    assert "--matte" not in capsys.readouterr().err
+    assert "finish" not in capsys.readouterr().err
+    record = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert "finish" not in record["gauge_check"] and record["brdf"] is None
