@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ColorPSWarning, InputError
-from .lights import MIN_ELEVATION_Z, Lights
+from .lights import DIRECTION_HEADER, MIN_ELEVATION_Z, Lights, direction_columns
 
 __all__ = ["AmbiguousHighlightWarning", "Highlight", "calibrate_lights", "find_highlight",
            "highlight_candidates", "highlight_table", "sphere_from_mask"]
@@ -353,12 +353,9 @@ def calibrate_lights(stack, sphere: tuple[float, float, float], *,
 
 def highlight_table(names, found: list[Highlight]) -> list[str]:
     """calibrate-lights' table: per image the direction and how sure it is."""
-    lines = [f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>4s} "
-             f"{'clip':>4s} {'elong':>5s} {'deg/px':>6s} {'rival':>5s}"]
+    lines = [f"{DIRECTION_HEADER} {'px':>4s} {'clip':>4s} {'elong':>5s} {'deg/px':>6s} "
+             f"{'rival':>5s}"]
     for name, f in zip(names, found, strict=True):
-        x, y, z = f.direction
-        lines.append(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
-                     f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:4d} "
-                     f"{f.clipped:4d} {f.elongation:5.2f} {f.degrees_per_pixel:6.2f} "
-                     f"{f.rival:5.2f}")
+        lines.append(f"{direction_columns(name, f.direction)} {f.pixels:4d} {f.clipped:4d} "
+                     f"{f.elongation:5.2f} {f.degrees_per_pixel:6.2f} {f.rival:5.2f}")
     return lines

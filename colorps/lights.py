@@ -28,7 +28,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["LIGHT_FORMATS", "Lights", "read_lights", "write_intensities", "write_lights"]
+__all__ = ["DIRECTION_HEADER", "LIGHT_FORMATS", "Lights", "direction_columns", "read_lights",
+           "write_intensities", "write_lights"]
 
 #: File formats of :func:`read_lights` and :func:`write_lights`.
 LIGHT_FORMATS = (".txt", ".lp", ".json")
@@ -283,3 +284,15 @@ def write_intensities(lights: Lights, path) -> Path:
     with atomic_target(path) as tmp:
         tmp.write_text(text)
     return path
+
+
+#: The first columns of calibrate-lights' tables (:func:`direction_columns`).
+DIRECTION_HEADER = f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s}"
+
+
+def direction_columns(name: str, direction) -> str:
+    """An image's name, its light's direction and elevation (degrees), as the
+    first columns of calibrate-lights' tables."""
+    x, y, z = direction
+    return (f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
+            f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f}")

@@ -29,7 +29,7 @@ import numpy as np
 from .errors import InputError
 from .gauge import Gauge
 from .gauge_check import lambertian_fit
-from .lights import MIN_ELEVATION_Z, Lights
+from .lights import DIRECTION_HEADER, MIN_ELEVATION_Z, Lights, direction_columns
 
 __all__ = ["MatteLight", "matte_sphere_lights", "matte_table"]
 
@@ -135,11 +135,8 @@ def _light(shown: np.ndarray, normals: np.ndarray, vector: np.ndarray, albedo: n
 def matte_table(names, found: list[MatteLight]) -> list[str]:
     """calibrate-lights --matte's table: per image the direction, the intensity
     per band and how Lambertian the sphere looked (relative RMS residual)."""
-    lines = [f"{'image':24s} {'x':>7s} {'y':>7s} {'z':>7s} {'elev':>5s} {'px':>6s} "
-             f"{'resid':>6s}  intensity"]
+    lines = [f"{DIRECTION_HEADER} {'px':>6s} {'resid':>6s}  intensity"]
     for name, f in zip(names, found, strict=True):
-        x, y, z = f.direction
-        lines.append(f"{name[:24]:24s} {x:7.4f} {y:7.4f} {z:7.4f} "
-                     f"{np.degrees(np.arcsin(np.clip(z, -1, 1))):5.1f} {f.pixels:6d} "
+        lines.append(f"{direction_columns(name, f.direction)} {f.pixels:6d} "
                      f"{f.residual:6.3f}  " + " ".join(f"{v:.4g}" for v in f.intensity))
     return lines
