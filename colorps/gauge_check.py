@@ -292,20 +292,27 @@ def judge_finish(record: dict, first_file: Path) -> bool:
     """Whether a run whose scene the matte gauge explained poorly takes the
     solution with the gauge's lights and the scene's own finish: its median
     residual is under CLEARLY_BETTER of the gauge's (both in ``record``, noise
-    units; ``taken`` is added). Warns of what was done."""
+    units; ``taken`` is added). Warns of what was done. A run that could not
+    try it (``residual_with_gauge_lights`` None: tiled, or through a lens) is
+    told how to, by hand."""
     gauge, own = record["residual_with_gauge"], record["residual_with_gauge_lights"]
-    record["taken"] = bool(own < CLEARLY_BETTER * gauge)
-    if record["taken"]:
-        said = (f"the scene matches the gauge at {gauge:.1f} noise units (median; about "
-                "1 where the gauge explains it), though the gauge shades like a matte "
-                "sphere: its finish is not the scene's. Solved instead with the lights "
+    record["taken"] = bool(own is not None and own < CLEARLY_BETTER * gauge)
+    seen = (f"the scene matches the gauge at {gauge:.1f} noise units (median; about 1 "
+            "where the gauge explains it), though the gauge shades like a matte sphere")
+    if own is None:
+        said = (f"{seen}: if the scene's finish differs from the gauge's, every normal is "
+                "biased alike. A tiled run or one through a lens does not try the way "
+                "out itself: measure the lights on the gauge (colorps calibrate-lights "
+                "'GAUGE_IMAGES' --sphere ... --matte --out lights.json) and reconstruct "
+                "with --lights lights.json, which fits the scene's own finish")
+    elif record["taken"]:
+        said = (f"{seen}: its finish is not the scene's. Solved instead with the lights "
                 "measured on the gauge and the scene's own fitted finish (as calibrate-"
                 f"lights --matte and --lights would), which matches at {own:.1f}; "
                 "report.json's gauge_check.finish says so")
     else:
-        said = (f"the scene matches the gauge at {gauge:.1f} noise units (median), though "
-                "the gauge shades like a matte sphere; the lights measured on it with the "
-                f"scene's own fitted finish did no better ({own:.1f}), so the gauge's "
-                "result is kept: check that scene and gauge share their lights")
+        said = (f"{seen}; the lights measured on it with the scene's own fitted finish did "
+                f"no better ({own:.1f}), so the gauge's result is kept: check that scene "
+                "and gauge share their lights")
     warnings.warn(f"{first_file}: {said}", GaugeWarning, stacklevel=3)
     return record["taken"]

@@ -463,21 +463,23 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
                        progress: bool):
     """A run whose scene its matte gauge explains poorly (another finish), solved
     again with the gauge's lights and the scene's own finish
-    (:func:`colorps.virtual.with_gauge_lights`; untiled, orthographic, the scene
-    read again), kept when it matches clearly better. Returns (result, settings,
-    the finish and its fits or None); ``checked["finish"]`` records both."""
-    if plan.rows is not None or inputs.camera is not None:
-        return result, run, None
-    scene, _ = _read_scene(stacks, run.options, plan, progress)
-    other, other_run, finish, _ = with_gauge_lights(scene, gauge_stack, gauge, run, mask=mask,
-                                                    radius=inputs.virtual_radius,
-                                                    progress=progress)
-    own = other.stats.residual_median_noise_units
-    record = dict(residual_with_gauge=result.stats.residual_median_noise_units,
-                  residual_with_gauge_lights=own, brdf=finish[0].as_dict())
-    checked["finish"] = record
-    taken = judge_finish(record, stacks.gauge_paths[0])
-    return (other, other_run, finish) if taken else (result, run, None)
+    (:func:`colorps.virtual.with_gauge_lights`, the scene read again; tiled runs
+    and cameras are told how instead), kept when it matches clearly better.
+    Returns (result, settings, the finish and its fits or None);
+    ``checked["finish"]`` records both."""
+    record = checked["finish"] = dict(
+        residual_with_gauge=result.stats.residual_median_noise_units,
+        residual_with_gauge_lights=None, brdf=None)
+    if plan.rows is None and inputs.camera is None:
+        scene, _ = _read_scene(stacks, run.options, plan, progress)
+        other, other_run, finish, _ = with_gauge_lights(
+            scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
+            progress=progress)
+        record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
+                      brdf=finish[0].as_dict())
+    if judge_finish(record, stacks.gauge_paths[0]):
+        return other, other_run, finish
+    return result, run, None
 
 
 def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,

@@ -132,6 +132,17 @@ def test_a_gauge_of_another_finish_is_noticed_and_solved(rough_capture, tmp_path
     assert checked < 0.25 * gauge_only and checked < 0.3, (checked, gauge_only)
 
 
+def test_a_tiled_run_says_how_to_solve_another_finish(rough_capture, tmp_path, capsys):
+    folder, _, _, _ = rough_capture
+    assert _reconstruct(folder, tmp_path / "tiled", "--gauge", str(folder / "gauge_*.exr"),
+                        "--sphere", "auto", "--tile", "32") == 0
+    said = capsys.readouterr().err
+    assert "does not try" in said and "--matte" in said
+    finish = json.loads((tmp_path / "tiled" / "report.json").read_text())["gauge_check"][
+        "finish"]
+    assert finish["taken"] is False and finish["residual_with_gauge_lights"] is None
+
+
 def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
     """The same capture with a Lambertian scene: no word of another finish, and the
     gauge's result as it is."""
