@@ -300,11 +300,13 @@ def judge_finish(record: dict, first_file: Path) -> bool:
     seen = (f"the scene matches the gauge at {gauge:.1f} noise units (median; about 1 "
             "where the gauge explains it), though the gauge shades like a matte sphere")
     if own is None:
+        why = f"could not ({record['failed']})" if "failed" in record else \
+            "does not try it itself (a tiled run, or one through a lens)"
         said = (f"{seen}: if the scene's finish differs from the gauge's, every normal is "
-                "biased alike. A tiled run or one through a lens does not try the way "
-                "out itself: measure the lights on the gauge (colorps calibrate-lights "
-                "'GAUGE_IMAGES' --sphere ... --matte --out lights.json) and reconstruct "
-                "with --lights lights.json, which fits the scene's own finish")
+                f"biased alike. The way out, lights measured on the gauge, {why}: by hand, "
+                "colorps calibrate-lights 'GAUGE_IMAGES' --sphere ... --matte --out "
+                "lights.json, then reconstruct with --lights lights.json, which fits the "
+                "scene's own finish")
     elif record["taken"]:
         said = (f"{seen}: its finish is not the scene's. Solved instead with the lights "
                 "measured on the gauge and the scene's own fitted finish (as calibrate-"
@@ -312,7 +314,8 @@ def judge_finish(record: dict, first_file: Path) -> bool:
                 "report.json's gauge_check.finish says so")
     else:
         said = (f"{seen}; the lights measured on it with the scene's own fitted finish did "
-                f"no better ({own:.1f}), so the gauge's result is kept: check that scene "
-                "and gauge share their lights")
+                f"no better ({own:.1f}), so the gauge's result is kept. Something else "
+                "departs from the gauge: lights near the object, bounced light, or scene "
+                "and gauge lit or exposed differently")
     warnings.warn(f"{first_file}: {said}", GaugeWarning, stacklevel=3)
     return record["taken"]

@@ -461,22 +461,23 @@ def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
                        mask, inputs: CaptureFiles, plan: TilePlan, checked: dict,
                        progress: bool):
-    """A run whose scene its matte gauge explains poorly (another finish), solved
-    again with the gauge's lights and the scene's own finish
-    (:func:`colorps.virtual.with_gauge_lights`, the scene read again; tiled runs
-    and cameras are told how instead), kept when it matches clearly better.
-    Returns (result, settings, the finish and its fits or None);
-    ``checked["finish"]`` records both."""
+    """A run whose matte gauge explains its scene poorly, solved again with the
+    gauge's lights and the scene's own finish (:func:`virtual.with_gauge_lights`)
+    and kept if clearly better (:func:`gauge_check.judge_finish`, which records
+    it in ``checked``). Returns (result, settings, finish and its fits or None)."""
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
-    if plan.rows is None and inputs.camera is None:
-        scene, _ = _read_scene(stacks, run.options, plan, progress)
-        other, other_run, finish, _ = with_gauge_lights(
-            scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
-            progress=progress)
-        record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
-                      brdf=finish[0].as_dict())
+    try:  # the gauge's lights may not be measurable (a small or one-sided sphere)
+        if plan.rows is None and inputs.camera is None:
+            scene, _ = _read_scene(stacks, run.options, plan, progress)
+            other, other_run, finish, _ = with_gauge_lights(
+                scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
+                progress=progress)
+            record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
+                          brdf=finish[0].as_dict())
+    except InputError as error:
+        record["failed"] = str(error)
     if judge_finish(record, stacks.gauge_paths[0]):
         return other, other_run, finish
     return result, run, None

@@ -137,10 +137,30 @@ def test_a_tiled_run_says_how_to_solve_another_finish(rough_capture, tmp_path, c
     assert _reconstruct(folder, tmp_path / "tiled", "--gauge", str(folder / "gauge_*.exr"),
                         "--sphere", "auto", "--tile", "32") == 0
     said = capsys.readouterr().err
-    assert "does not try" in said and "--matte" in said
+    assert "does not try it itself" in said and "--matte" in said
     finish = json.loads((tmp_path / "tiled" / "report.json").read_text())["gauge_check"][
         "finish"]
     assert finish["taken"] is False and finish["residual_with_gauge_lights"] is None
+
+
+def test_lights_that_cannot_be_measured_leave_the_gauges_result(rough_capture, tmp_path,
+                                                                capsys, monkeypatch):
+    """The way out failing (here made to) is said, and the run ends with the gauge's
+    result, not an error."""
+    import colorps.virtual as virtual
+
+    def unmeasurable(*args, **kwargs):
+        raise InputError("gauge_03.exr: only 12 lit pixels on the matte sphere")
+
+    monkeypatch.setattr(virtual, "matte_sphere_lights", unmeasurable)
+    folder, _, _, _ = rough_capture
+    assert _reconstruct(folder, tmp_path / "out", "--gauge", str(folder / "gauge_*.exr"),
+                        "--sphere", "auto") == 0
+    said = capsys.readouterr().err
+    assert "could not (gauge_03.exr: only 12 lit pixels" in said and "by hand" in said
+    finish = json.loads((tmp_path / "out" / "report.json").read_text())["gauge_check"][
+        "finish"]
+    assert finish["taken"] is False and "12 lit pixels" in finish["failed"]
 
 
 def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
