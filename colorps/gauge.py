@@ -287,9 +287,7 @@ def find_sphere(stack) -> tuple[float, float, float]:
     points = max(contours, key=len)[:, ::-1] if contours else np.zeros((0, 2))
     if len(points) < MIN_OUTLINE_POINTS:
         raise GaugeError("sphere auto: the bright region is too small to be a gauge sphere")
-    model, inliers = measure.ransac(points, measure.CircleModel, min_samples=3,
-                                    residual_threshold=RANSAC_RESIDUAL_PX,
-                                    max_trials=RANSAC_TRIALS, rng=0)
+    model, inliers = _ransac_circle(points)
     if model is None or inliers is None:
         raise GaugeError("sphere auto: no circle fits the gauge's outline")
     cx, cy, r = _circle_of(model)
@@ -310,6 +308,16 @@ def find_sphere(stack) -> tuple[float, float, float]:
     return _edge_circle(brightest, (cx, cy, r), bright)
 
 
+def _ransac_circle(points: np.ndarray):
+    """scikit-image's robust circle fit to (N, 2) points (x, y): (CircleModel or
+    None, inlier mask or None), within RANSAC_RESIDUAL_PX."""
+    from skimage import measure
+
+    return measure.ransac(points, measure.CircleModel, min_samples=3,
+                          residual_threshold=RANSAC_RESIDUAL_PX, max_trials=RANSAC_TRIALS,
+                          rng=0)
+
+
 def _circle_of(model) -> tuple[float, float, float]:
     """(cx, cy, r) of a fitted scikit-image ``CircleModel``."""
     if hasattr(model, "center"):  # scikit-image >= 0.26
@@ -324,7 +332,6 @@ def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
     """The circle through the sphere's edge near ``circle`` (see :func:`find_sphere`);
     ``circle`` itself when too few radii cross a lit edge."""
     from scipy.ndimage import map_coordinates
-    from skimage import measure
 
     cx, cy, r = circle
     angle = np.linspace(0.0, 2 * np.pi, EDGE_RAYS, endpoint=False)
@@ -345,9 +352,7 @@ def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
     points = np.stack([cx + edge * np.cos(angle[rays]), cy + edge * np.sin(angle[rays])], axis=1)
     if len(points) < MIN_OUTLINE_POINTS:
         return circle
-    model, inliers = measure.ransac(points, measure.CircleModel, min_samples=3,
-                                    residual_threshold=RANSAC_RESIDUAL_PX,
-                                    max_trials=RANSAC_TRIALS, rng=0)
+    model, inliers = _ransac_circle(points)
     if model is None or inliers is None or inliers.mean() < MIN_INLIER_FRACTION:
         return circle
     return _circle_of(model)
