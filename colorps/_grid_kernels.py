@@ -241,10 +241,20 @@ def box_gap(typingctx, low, high, box_low, box_high, row):
 
 
 # ---------------------------------------------------------------- bounds
+def prune_limit(dmin2):
+    """The largest squared distance that could still beat ``dmin2`` (scalar or
+    array): above it a lower bound prunes. Plain Python for the brute force of
+    :mod:`colorps.tables`, compiled as :func:`_prune_limit` for the kernels."""
+    return dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
+
+
+_prune_limit = njit(cache=True, inline="always")(prune_limit)
+
+
 @njit(cache=True, inline="always")
 def _prunable(bound2, dmin2):
     """True when a lower bound ``bound2`` proves nothing can beat ``dmin2``."""
-    return bound2 > dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
+    return bound2 > _prune_limit(dmin2)
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
@@ -476,7 +486,7 @@ def _scan_run(query, position, i, j, run, grid, search):
         return search
     block_last, rows = grid.plan.block_last, grid.entries.row
     best, dmin2, n_buckets, n_tests, exact = search
-    limit = dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
+    limit = _prune_limit(dmin2)
     while c0 <= c1:  # cells of one row are contiguous within a block
         stop = min(c1, block_last[c0])
         first = cells.begin[ci * n + c0]
@@ -488,7 +498,7 @@ def _scan_run(query, position, i, j, run, grid, search):
             if d2 <= limit:  # not _prunable: the first test of _keep_nearer, hoisted
                 best, dmin2, exact = _keep_nearer(query, values, rows, e, d2, best, dmin2,
                                                   exact)
-                limit = dmin2 * (1.0 + REL_SLACK) + ABS_SLACK
+                limit = _prune_limit(dmin2)
         n_tests += last - first
         c0 = stop + 1
     return Search(best, dmin2, n_buckets, n_tests, exact)

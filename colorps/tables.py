@@ -131,7 +131,7 @@ def _brute_force(table: np.ndarray, queries: np.ndarray) -> np.ndarray:
     for a in range(0, len(queries), step):
         q = queries[a:a + step].astype(np.float64)
         d2 = np.einsum("ij,ij->i", q, q)[:, None] + t2[None, :] - 2.0 * q @ t.T
-        limit = d2.min(axis=1) * (1.0 + _grid_kernels.REL_SLACK) + _grid_kernels.ABS_SLACK
+        limit = _grid_kernels.prune_limit(d2.min(axis=1))
         pair_query, pair_row = np.nonzero(d2 <= limit[:, None])
         _grid_kernels.nearest_of_candidates(queries[a:a + step], table, pair_query,
                                             pair_row, rows[a:a + step])
