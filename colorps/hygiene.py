@@ -11,25 +11,28 @@ follows blames the gauge. Two checks name such a file and its position instead:
   photograph of a lit object can (a wholly clipped or black image is left to the
   checks that say so).
 
-:func:`relative_exposures` compares the exposures the files' headers record,
-for the warnings about scene images taken at other settings.
+:func:`relative_exposures` compares the exposures the files' headers record;
+:func:`check_exposures` and :func:`check_stack_exposures` warn about scene
+images taken at other settings than their gauge images or than each other.
 """
 
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError
+from .errors import ExposureWarning, InputError
 
 if TYPE_CHECKING:
     from .io import ImageInfo
 
-__all__ = ["MASK_WORDS", "check_contents", "check_names", "relative_exposures"]
+__all__ = ["EXPOSURE_TOLERANCE", "MASK_WORDS", "check_contents", "check_exposures", "check_names",
+           "check_stack_exposures", "relative_exposures"]
 
 #: A file whose name (without extension) holds one of these words, as a word
 #: or after a separator, is taken for a mask, not a photograph.
@@ -37,6 +40,10 @@ MASK_WORDS = ("mask", "matte", "alpha")
 _MASK_NAME = re.compile(r"(^|[^a-z])(" + "|".join(MASK_WORDS) + r")([^a-z]|$)")
 #: Pixels read for the content check (a regular sample of each image).
 CONTENT_SAMPLE = 65536
+#: Scene and gauge exposures (EXIF) that differ by more than this fraction,
+#: between lights or overall, are warned about (nominal shutter speeds alike
+#: compare exactly; a third of a stop is 26 %).
+EXPOSURE_TOLERANCE = 0.02
 
 
 def check_names(paths: Sequence[Path], name: str) -> None:
@@ -98,3 +105,48 @@ def relative_exposures(scene: Sequence[ImageInfo],
             ratio *= (g.exposure["f_number"] / s.exposure["f_number"]) ** 2
         ratios.append(ratio)
     return np.array(ratios) if ratios else None
+
+
+def _furthest_off(ratios: np.ndarray) -> int | None:
+    """The image whose exposure ratio is furthest from the median, when the ratios
+    spread more than EXPOSURE_TOLERANCE; None when they agree."""
+    if ratios.max() <= ratios.min() * (1 + EXPOSURE_TOLERANCE):
+        return None
+    return int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
+
+
+def check_stack_exposures(scene_infos) -> None:
+    """With calibrated lights (no gauge exposed alike to cancel it), warn when the
+    headers say the scene's images were exposed differently: naming the image
+    most unlike the others, and its place."""
+    ratios = relative_exposures(scene_infos, [scene_infos[0]] * len(scene_infos))
+    k = None if ratios is None else _furthest_off(ratios)
+    if k is None:
+        return
+    warnings.warn(f"{scene_infos[k].path} (image {k + 1} of {len(ratios)}): exposed "
+                  f"{ratios[k] / np.median(ratios):.3g}x the scene's usual exposure (EXIF); "
+                  "with calibrated lights every image needs the same exposure (or "
+                  "--light-intensities that include it), or the normals are biased",
+                  ExposureWarning, stacklevel=3)
+
+
+def check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
+    """Warn when the headers say scene and gauge were exposed differently;
+    return each scene image's exposure over its gauge image's (or None)."""
+    ratios = relative_exposures(scene_infos, gauge_infos)
+    if ratios is None:
+        return None
+    shown = ", ".join(f"{r:.3g}" for r in ratios)
+    k = _furthest_off(ratios)
+    if k is not None:
+        warnings.warn(f"{scene_infos[k].path}: scene and gauge were exposed differently "
+                      f"under different lights (scene / gauge exposure per image, from "
+                      f"EXIF: {shown}); each light's scene and gauge photos need the same "
+                      "exposure, or the normals are biased", ExposureWarning, stacklevel=3)
+    elif abs(np.log(np.median(ratios))) > np.log1p(EXPOSURE_TOLERANCE):
+        factor = float(np.median(ratios))
+        warnings.warn(f"{scene_infos[0].path}: the scene was exposed {factor:.3g}x the gauge "
+                      f"(EXIF); the albedo, relative to the gauge's, comes out multiplied by "
+                      f"{factor:.3g}: divide it, or photograph both alike", ExposureWarning,
+                      stacklevel=3)
+    return ratios

@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-import warnings
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -27,12 +26,13 @@ from typing import Literal
 import numpy as np
 
 from . import __version__
+from ._blas import one_blas_thread
 from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
-from .errors import ExposureWarning, InputError, OutputError
+from .errors import InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
 from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
-from .hygiene import check_contents, check_names, relative_exposures
+from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
 from .io import (
@@ -70,12 +70,9 @@ __all__ = ["calibrate_lights_files", "integrate_file", "reconstruct_files"]
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
 UNIT_TOLERANCE = 0.01
 MAX_NON_UNIT_FRACTION = 0.01
-#: Scene and gauge exposures (EXIF) that differ by more than this fraction,
-#: between lights or overall, are warned about (nominal shutter speeds alike
-#: compare exactly; a third of a stop is 26 %).
-EXPOSURE_TOLERANCE = 0.02
 
 
+@one_blas_thread
 def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = None,
                       overwrite: bool = False, progress: bool = True,
                       scheduler=None) -> Reconstruction:
@@ -206,7 +203,7 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
             raise InputError(f"{source}: the intensities have {bands} values per light but "
                              f"{scene_paths[0]} has {scene_infos[0].channels} channel(s); give "
                              "one value or one per channel")
-        _check_stack_exposures(scene_infos)
+        check_stack_exposures(scene_infos)
         return dataclasses.replace(stacks, light_set=light_set)
     gauge_paths = expand_paths(inputs.gauge, name="gauge")
     check_natural_order(gauge_paths, inputs.gauge, "gauge")
@@ -220,7 +217,7 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
         raise InputError(f"{gauge_paths[0]}: has {gauge_infos[0].channels} channel(s) but "
                          f"{scene_paths[0]} has {scene_infos[0].channels}")
     return dataclasses.replace(stacks, gauge_paths=gauge_paths, gauge_infos=gauge_infos,
-                               exposures=_check_exposures(scene_infos, gauge_infos))
+                               exposures=check_exposures(scene_infos, gauge_infos))
 
 
 def _check_memory(stacks: _Stacks, inputs: CaptureFiles, options: Options,
@@ -394,51 +391,6 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
                             report=report, exports=exports, overwrite=overwrite,
                             finished=finished, progress=progress)
     return result if finished is None else finished.result()
-
-
-def _furthest_off(ratios: np.ndarray) -> int | None:
-    """The image whose exposure ratio is furthest from the median, when the ratios
-    spread more than EXPOSURE_TOLERANCE; None when they agree."""
-    if ratios.max() <= ratios.min() * (1 + EXPOSURE_TOLERANCE):
-        return None
-    return int(np.argmax(np.abs(np.log(ratios / np.median(ratios)))))
-
-
-def _check_stack_exposures(scene_infos) -> None:
-    """With calibrated lights (no gauge exposed alike to cancel it), warn when the
-    headers say the scene's images were exposed differently: naming the image
-    most unlike the others, and its place."""
-    ratios = relative_exposures(scene_infos, [scene_infos[0]] * len(scene_infos))
-    k = None if ratios is None else _furthest_off(ratios)
-    if k is None:
-        return
-    warnings.warn(f"{scene_infos[k].path} (image {k + 1} of {len(ratios)}): exposed "
-                  f"{ratios[k] / np.median(ratios):.3g}x the scene's usual exposure (EXIF); "
-                  "with calibrated lights every image needs the same exposure (or "
-                  "--light-intensities that include it), or the normals are biased",
-                  ExposureWarning, stacklevel=3)
-
-
-def _check_exposures(scene_infos, gauge_infos) -> np.ndarray | None:
-    """Warn when the headers say scene and gauge were exposed differently;
-    return each scene image's exposure over its gauge image's (or None)."""
-    ratios = relative_exposures(scene_infos, gauge_infos)
-    if ratios is None:
-        return None
-    shown = ", ".join(f"{r:.3g}" for r in ratios)
-    k = _furthest_off(ratios)
-    if k is not None:
-        warnings.warn(f"{scene_infos[k].path}: scene and gauge were exposed differently "
-                      f"under different lights (scene / gauge exposure per image, from "
-                      f"EXIF: {shown}); each light's scene and gauge photos need the same "
-                      "exposure, or the normals are biased", ExposureWarning, stacklevel=3)
-    elif abs(np.log(np.median(ratios))) > np.log1p(EXPOSURE_TOLERANCE):
-        factor = float(np.median(ratios))
-        warnings.warn(f"{scene_infos[0].path}: the scene was exposed {factor:.3g}x the gauge "
-                      f"(EXIF); the albedo, relative to the gauge's, comes out multiplied by "
-                      f"{factor:.3g}: divide it, or photograph both alike", ExposureWarning,
-                      stacklevel=3)
-    return ratios
 
 
 def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:

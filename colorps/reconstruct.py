@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _pixel_kernels, light_masks
+from ._blas import one_blas_thread
 from ._checks import check_stack, mask_box
 from .errors import GaugeWarning, InputError, LowSolvedWarning
 from .gauge import Gauge, parse_albedo
@@ -57,6 +58,7 @@ MIN_ALBEDO_ENERGY = 0.01
 ALBEDO_ROWS = 256
 
 
+@one_blas_thread
 def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | None = None,
                 *, mask=None, model_scale: float | None = None,
                 tables: GaugeTables | None = None, progress: bool = False,
