@@ -296,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--matte", action="store_true",
                      help="a matte sphere (a gauge): directions and intensities by a "
                           "Lambertian fit of its shading")
+    cal.add_argument("--camera", type=_camera, metavar="F|K.txt|FILE.json",
+                     help="with --matte: the pinhole camera, as for reconstruct")
     cal.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="sphere silhouette in pixels, or 'auto' to find it")
     cal.add_argument("--sphere-mask", metavar="FILE",
@@ -487,7 +489,7 @@ def _run(args, received: list[int]) -> int:
         elif args.command == "calibrate-lights":
             _, found, sphere, table, written = calibrate_lights_files(
                 args.images, args.sphere, args.out, sphere_mask=args.sphere_mask,
-                matte=args.matte, overwrite=args.overwrite)
+                matte=args.matte, camera=args.camera, overwrite=args.overwrite)
             print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
             print("\n".join(table))
             print(f"wrote {len(found)} lights to {', '.join(map(str, written))}")

@@ -295,7 +295,7 @@ def judge_finish(record: dict, first_file: Path) -> bool:
     solution with the gauge's lights and the scene's own finish: its median
     residual is under CLEARLY_BETTER of the gauge's (both in ``record``, noise
     units; ``taken`` is added). Warns of what was done. A run that could not
-    try it (``residual_with_gauge_lights`` None: tiled, or through a lens) is
+    try it (``residual_with_gauge_lights`` None: a tiled run) is
     told how to, by hand."""
     gauge, own = record["residual_with_gauge"], record["residual_with_gauge_lights"]
     record["taken"] = bool(own is not None and own < CLEARLY_BETTER * gauge)
@@ -303,7 +303,7 @@ def judge_finish(record: dict, first_file: Path) -> bool:
             "where the gauge explains it), though the gauge shades like a matte sphere")
     if own is None:
         why = f"could not ({record['failed']})" if "failed" in record else \
-            "does not try it itself (a tiled run, or one through a lens)"
+            "does not try it itself in a tiled run"
         said = (f"{seen}: if the scene's finish differs from the gauge's, every normal is "
                 f"biased alike. The way out, lights measured on the gauge, {why}: by hand, "
                 "colorps calibrate-lights 'GAUGE_IMAGES' --sphere ... --matte --out "

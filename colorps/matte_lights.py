@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .camera import Camera
 from .errors import InputError
 from .gauge import Gauge
 from .gauge_check import lambertian_fit
@@ -62,8 +63,8 @@ class MatteLight:
 
 
 def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0,
-                        clip_level: float | None = None, names=None
-                        ) -> tuple[Lights, list[MatteLight]]:
+                        clip_level: float | None = None, names=None,
+                        camera: Camera | None = None) -> tuple[Lights, list[MatteLight]]:
     """Lights of a capture from its images of a matte sphere (see the module docstring).
 
     Parameters
@@ -78,6 +79,10 @@ def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0
         Values at or above it (saturated) are left out.
     names : sequence of str, optional
         Image names, for errors and the returned :class:`~colorps.Lights`.
+    camera : Camera, optional
+        The pinhole camera the images were taken with: the sphere's normals
+        come from the true ray through each pixel (as with ``--camera``), and
+        the directions are in that camera's frame. Default orthographic.
 
     Returns
     -------
@@ -98,7 +103,7 @@ def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0
     if images.ndim != 4:
         raise InputError(f"matte sphere: expected (m, H, W[, c]) images, got {images.shape}")
     names = list(names) if names is not None else [f"image {k}" for k in range(len(images))]
-    gauge = Gauge.from_sphere(images.shape[1:3], *sphere)
+    gauge = Gauge.from_sphere(images.shape[1:3], *sphere, camera=camera)
     values = images[:, gauge.mask]  # (m, P, c)
     if clip_level is not None:
         values = np.where((values < clip_level).all(axis=2, keepdims=True), values, np.nan)

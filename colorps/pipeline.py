@@ -28,6 +28,7 @@ import numpy as np
 from . import __version__
 from ._blas import one_blas_thread
 from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
+from .camera import Camera
 from .errors import InputError, OutputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere
@@ -163,7 +164,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                                                   mask, inputs, plan, checked, progress)
     report = _report(inputs, stacks, run, plan, gauge, virtual, names)
     report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
-    report["matched_along_rays"] = along_rays
+    report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
     report["run_seconds"] = clock  # taken when report.json is written, last
     clock.start("writing")
     result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)
@@ -421,11 +422,11 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
     try:  # the gauge's lights may not be measurable (a small or one-sided sphere)
-        if plan.rows is None and inputs.camera is None:
+        if plan.rows is None:
             scene, _ = _read_scene(stacks, run.options, plan, progress)
             other, other_run, finish, _ = with_gauge_lights(
                 scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
-                progress=progress)
+                camera=inputs.camera, progress=progress)
             record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
                           brdf=finish[0].as_dict())
     except InputError as error:
@@ -492,7 +493,7 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
 def calibrate_lights_files(image_patterns: str | Sequence[str],
                            sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
                            sphere_mask=None, matte: bool = False, encoding="auto",
-                           overwrite: bool = False):
+                           camera: Camera | None = None, overwrite: bool = False):
     """Lights from a sphere's images, written as a light file.
 
     Parameters
@@ -513,6 +514,9 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
         A matte sphere (:func:`colorps.matte_lights.matte_sphere_lights`), not a
         mirror's highlights; into a ``.txt`` or ``.lp`` file its intensities go
         to ``<stem>_intensities.txt`` beside it.
+    camera : Camera, optional
+        With ``matte``: the pinhole camera the images were taken with (the
+        sphere's normals from the true rays). Default orthographic.
 
     Returns
     -------
@@ -528,6 +532,9 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
     if not out.parent.is_dir():
         raise OutputError(f"{out.parent}: output folder does not exist")
     what = "matte sphere" if matte else "mirror sphere"
+    if camera is not None and not matte:
+        raise InputError("--camera: only a matte sphere (--matte) is read through a lens; "
+                         "a mirror sphere's highlights are read orthographically")
     paths = expand_paths(image_patterns, name=what)
     info = check_stack_files(paths, name=what)[0]
     if (sphere is None) == (sphere_mask is None):
@@ -545,7 +552,7 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
     fit, table = (matte_sphere_lights, matte_table) if matte else \
         (calibrate_lights, highlight_table)
     lights, found = fit(stack, found_sphere, clip_level=input_levels(info, encoding)[0],
-                        names=names)
+                        names=names, **({"camera": camera} if matte else {}))
     write_lights(lights, out)
     if len(targets) > 1:
         write_intensities(lights, targets[1])

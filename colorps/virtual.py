@@ -26,6 +26,7 @@ import warnings
 import numpy as np
 
 from .brdf import BRDF, fit_brdf
+from .camera import Camera
 from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
 from .lights import Lights
@@ -120,18 +121,27 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
 
 def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
                       run: Resolved, *, mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS,
-                      progress: bool = False):
+                      camera: Camera | None = None, progress: bool = False):
     """The scene solved with a virtual gauge under the lights measured on a matte
     gauge (:func:`colorps.matte_lights.matte_sphere_lights`, intensities relative
     to its albedo) and of the scene's own fitted finish: for a gauge whose finish
-    is not the scene's. Returns (the :class:`~colorps.Reconstruction`, its
-    settings, (the finish, its fits), the lights)."""
+    is not the scene's. Through a lens (``camera``: scene and gauge photographed
+    with it) the sphere's normals come from the true rays, and a finish that
+    depends on the view has the scene matched again along each pixel's ray
+    (:func:`view_corrected`, which changes ``scene`` in place). Returns (the
+    :class:`~colorps.Reconstruction`, its settings, (the finish, its fits), the
+    lights)."""
     lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
-                                    clip_level=run.gauge_levels[0])
+                                    clip_level=run.gauge_levels[0], camera=camera)
     virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
                                                   radius=radius, progress=progress)
     result = reconstruct(scene, virtual.stack, virtual, settings, mask=mask,
                          progress=progress)
+    if camera is not None and brdf.depends_on_view:
+        scene = view_corrected(scene, result, lights, brdf, camera,
+                               settings.options.clip_level)
+        result = reconstruct(scene, virtual.stack, virtual, settings, mask=mask,
+                             progress=progress)
     return result, settings, (brdf, fits), lights
 
 
