@@ -20,5 +20,7 @@ __all__ = ["one_blas_thread"]
 
 def one_blas_thread(function):
     """Run ``function`` with every BLAS library held to one thread (threadpoolctl);
-    the caller's limits are back when it returns."""
+    the caller's limits are back when it returns. For the public entry points
+    that run numba's parallel kernels (``reconstruct_files``, ``reconstruct``,
+    ``virtual_gauge``, ``fit_scene_brdf``)."""
     return threadpool_limits.wrap(limits=1, user_api="blas")(function)

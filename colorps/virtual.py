@@ -25,6 +25,7 @@ import warnings
 
 import numpy as np
 
+from ._blas import one_blas_thread
 from .brdf import BRDF, fit_brdf
 from .camera import Camera
 from .errors import ColorPSWarning, InputError
@@ -68,6 +69,7 @@ FIT_MATCH_PIXELS = 40_000
 VIEW_CHUNK = 2 ** 15
 
 
+@one_blas_thread
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
                   mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, progress: bool = False
                   ) -> tuple[Gauge, Resolved, BRDF, list[dict] | None]:
@@ -145,6 +147,7 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
     return result, settings, (brdf, fits), lights
 
 
+@one_blas_thread
 def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = None, *,
                    mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, fits: int = SCENE_FITS,
                    progress: bool = False) -> tuple[BRDF, list[dict]]:
