@@ -9,6 +9,12 @@ them: at 1 MP, 8 RGB images on 2 cores, the grid lookups ran 1.5-2x slower and
 the whole ``colorps reconstruct`` 5.7-6.8 s instead of 4.8 s; DiLiGenT Ball
 with ``--lights`` 23.1 s instead of 18.2 s (docs/benchmarks.md). The products
 themselves are small enough that one thread loses nothing measurable.
+
+The public entry points that run numba's kernels (``reconstruct_files``,
+``reconstruct``, ``virtual_gauge``, ``fit_scene_brdf``) run their bodies
+``with one_blas_thread():``. Not as a decorator: a wrapper's frame would hold
+the arguments for the whole call, and ``reconstruct`` lets the scene stack go
+once it has the observation vectors (when its caller holds no reference).
 """
 
 from __future__ import annotations
@@ -18,9 +24,7 @@ from threadpoolctl import threadpool_limits
 __all__ = ["one_blas_thread"]
 
 
-def one_blas_thread(function):
-    """Run ``function`` with every BLAS library held to one thread (threadpoolctl);
-    the caller's limits are back when it returns. For the public entry points
-    that run numba's parallel kernels (``reconstruct_files``, ``reconstruct``,
-    ``virtual_gauge``, ``fit_scene_brdf``)."""
-    return threadpool_limits.wrap(limits=1, user_api="blas")(function)
+def one_blas_thread() -> threadpool_limits:
+    """A context in which every BLAS library runs one thread (threadpoolctl); the
+    limits from before are back when it ends."""
+    return threadpool_limits(limits=1, user_api="blas")

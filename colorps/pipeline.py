@@ -73,7 +73,6 @@ UNIT_TOLERANCE = 0.01
 MAX_NON_UNIT_FRACTION = 0.01
 
 
-@one_blas_thread
 def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = None,
                       overwrite: bool = False, progress: bool = True,
                       scheduler=None) -> Reconstruction:
@@ -117,59 +116,60 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     >>> bool(result.solved.any()), result.height is not None
     (True, True)
     """
-    options = options or Options()
-    clock = RunClock()
-    clock.start("checking")
-    prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
-    scene_paths = expand_paths(inputs.scene, name="scene")
-    check_natural_order(scene_paths, inputs.scene, "scene")
-    check_names(scene_paths, "scene")
-    stacks = _Stacks(scene_paths, check_stack_files(scene_paths, name="scene"))
-    plan = plan_tiles(stacks.shape, tile=options.tile,
-                      memory_limit_gib=options.memory_limit_gib, scheduler=scheduler)
-    options = options.replace(tile=plan.rows)
-    _check_memory(stacks, inputs, options, plan)
-    stacks = _with_gauge_headers(stacks, inputs, options)
-    mask = None
-    if inputs.mask is not None:
-        mask = read_mask(inputs.mask, stacks.shape[1:3])
-        if not mask.any():
-            raise InputError(f"{inputs.mask}: the mask selects no pixel (non-zero = solve)")
-    clock.start("reading")
-    scene, names = _read_scene(stacks, options, plan, progress)
-    clock.start("gauge")
-    run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
-                  gauge=None if inputs.lights is not None else
-                  StackModel.of_file(stacks.gauge_infos[0], options.encoding))
-    gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
-                                                                   mask, progress)
-    clock.start("reconstruct")
-    along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
-    if plan.rows is not None:
-        with dask_client(scheduler) as client:
-            result, preview = reconstruct_tiled(
-                scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
-                progress=progress, return_preview=True)
-        del scene  # not needed past here: free it for integration and writing
-    else:
-        handed = [scene]
-        del scene  # held by ``handed`` alone, so that the reconstruction can free it
-        result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
-                                             (stacks.light_set, virtual, inputs.camera),
-                                             progress)
-    _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
-    if inputs.lights is None and run.options.finish_check and \
-            finish_differs(result.stats.model_scale, checked):
-        result, run, virtual = _with_gauge_lights(result, stacks, gauge_stack, gauge, run,
-                                                  mask, inputs, plan, checked, progress)
-    report = _report(inputs, stacks, run, plan, gauge, virtual, names)
-    report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
-    report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
-    report["run_seconds"] = clock  # taken when report.json is written, last
-    clock.start("writing")
-    result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)
-    seconds = dataclasses.replace(result.stats.seconds, run=clock.as_dict()["total"])
-    return dataclasses.replace(result, stats=dataclasses.replace(result.stats, seconds=seconds))
+    with one_blas_thread():
+        options = options or Options()
+        clock = RunClock()
+        clock.start("checking")
+        prepare_output_dir(out, overwrite=overwrite)  # fail before the long work
+        scene_paths = expand_paths(inputs.scene, name="scene")
+        check_natural_order(scene_paths, inputs.scene, "scene")
+        check_names(scene_paths, "scene")
+        stacks = _Stacks(scene_paths, check_stack_files(scene_paths, name="scene"))
+        plan = plan_tiles(stacks.shape, tile=options.tile,
+                          memory_limit_gib=options.memory_limit_gib, scheduler=scheduler)
+        options = options.replace(tile=plan.rows)
+        _check_memory(stacks, inputs, options, plan)
+        stacks = _with_gauge_headers(stacks, inputs, options)
+        mask = None
+        if inputs.mask is not None:
+            mask = read_mask(inputs.mask, stacks.shape[1:3])
+            if not mask.any():
+                raise InputError(f"{inputs.mask}: the mask selects no pixel (non-zero = solve)")
+        clock.start("reading")
+        scene, names = _read_scene(stacks, options, plan, progress)
+        clock.start("gauge")
+        run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
+                      gauge=None if inputs.lights is not None else
+                      StackModel.of_file(stacks.gauge_infos[0], options.encoding))
+        gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
+                                                                       mask, progress)
+        clock.start("reconstruct")
+        along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
+        if plan.rows is not None:
+            with dask_client(scheduler) as client:
+                result, preview = reconstruct_tiled(
+                    scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
+                    progress=progress, return_preview=True)
+            del scene  # not needed past here: free it for integration and writing
+        else:
+            handed = [scene]
+            del scene  # held by ``handed`` alone, so that the reconstruction can free it
+            result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
+                                                 (stacks.light_set, virtual, inputs.camera),
+                                                 progress)
+        _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+        if inputs.lights is None and run.options.finish_check and \
+                finish_differs(result.stats.model_scale, checked):
+            result, run, virtual = _with_gauge_lights(result, stacks, gauge_stack, gauge, run,
+                                                      mask, inputs, plan, checked, progress)
+        report = _report(inputs, stacks, run, plan, gauge, virtual, names)
+        report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
+        report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
+        report["run_seconds"] = clock  # taken when report.json is written, last
+        clock.start("writing")
+        result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)
+        seconds = dataclasses.replace(result.stats.seconds, run=clock.as_dict()["total"])
+        return dataclasses.replace(result, stats=dataclasses.replace(result.stats, seconds=seconds))
 
 
 @dataclass(frozen=True)

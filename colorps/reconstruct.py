@@ -58,7 +58,6 @@ MIN_ALBEDO_ENERGY = 0.01
 ALBEDO_ROWS = 256
 
 
-@one_blas_thread
 def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | None = None,
                 *, mask=None, model_scale: float | None = None,
                 tables: GaugeTables | None = None, progress: bool = False,
@@ -125,71 +124,72 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     >>> result.normals.shape, result.albedo.shape, bool(result.solved.sum() == scene.mask.sum())
     ((64, 64, 3), (64, 64, 3), True)
     """
-    t_start = time.perf_counter()
-    run = resolve(options, **changes)
-    options = run.options
-    scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
-    whole, box = mask.shape, mask_box(mask)  # only the mask's box is worked on
-    origin, mask = (box[0].start, box[1].start), mask[box]
-    setup = _setup(scene, box, gauge_stack, gauge, run, tables)
-    m, _, _, c = scene.shape
-    # In colour mode the OVs hold every measurement: the stack is let go.
-    stack_box = None if options.mode == "colour" else scene[:, box[0], box[1]]
-    del scene
-    release_freed_memory()  # each step's temporaries, before the next step's
-    matches = match_pixels(setup.capture, mask, options, progress, model_scale, origin=origin)
-    release_freed_memory()
-    solved = matches.row >= 0
-    if options.max_distance is not None:
-        solved &= matches.distance <= options.max_distance
-    poor = np.zeros_like(solved)
-    if options.max_residual is not None:
-        poor = solved & ~(matches.quality <= options.max_residual)
-        solved &= ~poor
-    normals = np.full((*mask.shape, 3), np.nan, dtype=np.float32)
-    normals[solved] = setup.capture.gauge_normals[matches.row[solved]]
-    uncertainty = np.full(mask.shape, np.nan, dtype=np.float32)
-    offset = np.zeros((int(solved.sum()), 2), dtype=np.float32)
-    t0 = time.perf_counter()
-    if options.refine != "none" and (solved | poor).any():
-        solved, matches, refined = _refine(setup.capture, gauge, setup.gauge_sig, matches,
-                                           solved, poor, options)
-        # The noise's uncertainty or the one the residuals show along the
-        # normal's directions, whichever is larger, grown by how much worse than
-        # the noise the match explains the pixel (the reduced chi-square's root,
-        # its residual): a pixel the gauge explains poorly is less certain.
-        misfit = np.maximum(1.0, np.nan_to_num(matches.quality[solved], nan=1.0))
-        normals[solved] = refined.normals
-        uncertainty[solved] = np.fmax(refined.uncertainty,
-                                      refined.measured_uncertainty) * misfit
-        offset = refined.offset
-        del refined  # its other per-pixel arrays are not needed past here
+    with one_blas_thread():
+        t_start = time.perf_counter()
+        run = resolve(options, **changes)
+        options = run.options
+        scene, gauge_stack, mask = _check_inputs(scene, gauge_stack, gauge, mask, options.mode)
+        whole, box = mask.shape, mask_box(mask)  # only the mask's box is worked on
+        origin, mask = (box[0].start, box[1].start), mask[box]
+        setup = _setup(scene, box, gauge_stack, gauge, run, tables)
+        m, _, _, c = scene.shape
+        # In colour mode the OVs hold every measurement: the stack is let go.
+        stack_box = None if options.mode == "colour" else scene[:, box[0], box[1]]
+        del scene
+        release_freed_memory()  # each step's temporaries, before the next step's
+        matches = match_pixels(setup.capture, mask, options, progress, model_scale, origin=origin)
         release_freed_memory()
-    t_refine = time.perf_counter() - t0
-    albedo = np.full((*mask.shape, c), np.nan, dtype=np.float32)
-    albedo[solved] = _albedo(setup.scene_sig, stack_box, gauge_stack, solved, matches, offset,
-                             parse_albedo(gauge.albedo, c), options.clip_level)
-    reason = _reasons(setup.scene_sig, mask, solved, matches.row >= 0, matches.dropped)
-    message = low_solved_message(reason, mask, solved)
-    if message:
-        setup.said.append(message)
-        warnings.warn(message, LowSolvedWarning, stacklevel=2)
-    seconds = Timings(signatures=setup.seconds, grid=matches.seconds_grid,
-                      lookup=matches.seconds_lookup, refine=t_refine,
-                      total=time.perf_counter() - t_start)
-    stats = run_statistics(
-        matches, solved, reason, uncertainty, images=m, bands=c, mode=options.mode,
-        signature_dims=setup.scene_sig.bands * m,
-        table_size=int((gauge.mask & setup.gauge_sig.valid).sum()),
-        clip_level=options.clip_level, dark_level=float(options.dark_level),
-        dark_threshold=setup.capture.min_norm, noise=setup.capture.model.as_dict(),
-        max_residual=options.max_residual, max_distance=options.max_distance,
-        gauge_usable_fraction=setup.usable_gauge, warnings=tuple(setup.said),
-        seconds=seconds)
-    return _embed(Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
-                                 matches.bands_used,
-                                 np.where(solved[..., None], matches.dropped, np.uint64(0)),
-                                 stats), box, whole)
+        solved = matches.row >= 0
+        if options.max_distance is not None:
+            solved &= matches.distance <= options.max_distance
+        poor = np.zeros_like(solved)
+        if options.max_residual is not None:
+            poor = solved & ~(matches.quality <= options.max_residual)
+            solved &= ~poor
+        normals = np.full((*mask.shape, 3), np.nan, dtype=np.float32)
+        normals[solved] = setup.capture.gauge_normals[matches.row[solved]]
+        uncertainty = np.full(mask.shape, np.nan, dtype=np.float32)
+        offset = np.zeros((int(solved.sum()), 2), dtype=np.float32)
+        t0 = time.perf_counter()
+        if options.refine != "none" and (solved | poor).any():
+            solved, matches, refined = _refine(setup.capture, gauge, setup.gauge_sig, matches,
+                                               solved, poor, options)
+            # The noise's uncertainty or the one the residuals show along the
+            # normal's directions, whichever is larger, grown by how much worse than
+            # the noise the match explains the pixel (the reduced chi-square's root,
+            # its residual): a pixel the gauge explains poorly is less certain.
+            misfit = np.maximum(1.0, np.nan_to_num(matches.quality[solved], nan=1.0))
+            normals[solved] = refined.normals
+            uncertainty[solved] = np.fmax(refined.uncertainty,
+                                          refined.measured_uncertainty) * misfit
+            offset = refined.offset
+            del refined  # its other per-pixel arrays are not needed past here
+            release_freed_memory()
+        t_refine = time.perf_counter() - t0
+        albedo = np.full((*mask.shape, c), np.nan, dtype=np.float32)
+        albedo[solved] = _albedo(setup.scene_sig, stack_box, gauge_stack, solved, matches, offset,
+                                 parse_albedo(gauge.albedo, c), options.clip_level)
+        reason = _reasons(setup.scene_sig, mask, solved, matches.row >= 0, matches.dropped)
+        message = low_solved_message(reason, mask, solved)
+        if message:
+            setup.said.append(message)
+            warnings.warn(message, LowSolvedWarning, stacklevel=2)
+        seconds = Timings(signatures=setup.seconds, grid=matches.seconds_grid,
+                          lookup=matches.seconds_lookup, refine=t_refine,
+                          total=time.perf_counter() - t_start)
+        stats = run_statistics(
+            matches, solved, reason, uncertainty, images=m, bands=c, mode=options.mode,
+            signature_dims=setup.scene_sig.bands * m,
+            table_size=int((gauge.mask & setup.gauge_sig.valid).sum()),
+            clip_level=options.clip_level, dark_level=float(options.dark_level),
+            dark_threshold=setup.capture.min_norm, noise=setup.capture.model.as_dict(),
+            max_residual=options.max_residual, max_distance=options.max_distance,
+            gauge_usable_fraction=setup.usable_gauge, warnings=tuple(setup.said),
+            seconds=seconds)
+        return _embed(Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
+                                     matches.bands_used,
+                                     np.where(solved[..., None], matches.dropped, np.uint64(0)),
+                                     stats), box, whole)
 
 
 def first_residuals(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | None = None,

@@ -69,7 +69,6 @@ FIT_MATCH_PIXELS = 40_000
 VIEW_CHUNK = 2 ** 15
 
 
-@one_blas_thread
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
                   mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, progress: bool = False
                   ) -> tuple[Gauge, Resolved, BRDF, list[dict] | None]:
@@ -102,23 +101,24 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
     history : list of dict or None
         Each finish fit (:func:`fit_scene_brdf`), None when not fitted.
     """
-    run = resolve(options)
-    settings = run.options
-    if "auto" in (settings.read_noise, settings.gain):
-        usable = np.isfinite(scene).all(axis=(0, 3)) & (scene > 0).all(axis=(0, 3))
-        if mask is not None:
-            usable &= mask
-        fitted = estimate_noise(scene, usable, run.scene.noise)
-        run = run.replace(
-            read_noise=fitted.read if settings.read_noise == "auto" else settings.read_noise,
-            gain=fitted.gain if settings.gain == "auto" else settings.gain)
-    run = resolve(run, gauge=StackModel.rendered(run.options.dark_level))
-    brdf, history = BRDF.lambert(), None
-    if run.options.brdf == "fitted":
-        brdf, history = fit_scene_brdf(scene, lights, run, mask=mask, radius=radius,
-                                       progress=progress)
-    gauge = Gauge.virtual(lights, radius=radius, bands=scene.shape[3], brdf=brdf)
-    return gauge, run, brdf, history
+    with one_blas_thread():
+        run = resolve(options)
+        settings = run.options
+        if "auto" in (settings.read_noise, settings.gain):
+            usable = np.isfinite(scene).all(axis=(0, 3)) & (scene > 0).all(axis=(0, 3))
+            if mask is not None:
+                usable &= mask
+            fitted = estimate_noise(scene, usable, run.scene.noise)
+            run = run.replace(
+                read_noise=fitted.read if settings.read_noise == "auto" else settings.read_noise,
+                gain=fitted.gain if settings.gain == "auto" else settings.gain)
+        run = resolve(run, gauge=StackModel.rendered(run.options.dark_level))
+        brdf, history = BRDF.lambert(), None
+        if run.options.brdf == "fitted":
+            brdf, history = fit_scene_brdf(scene, lights, run, mask=mask, radius=radius,
+                                           progress=progress)
+        gauge = Gauge.virtual(lights, radius=radius, bands=scene.shape[3], brdf=brdf)
+        return gauge, run, brdf, history
 
 
 def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
@@ -147,7 +147,6 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
     return result, settings, (brdf, fits), lights
 
 
-@one_blas_thread
 def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = None, *,
                    mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, fits: int = SCENE_FITS,
                    progress: bool = False) -> tuple[BRDF, list[dict]]:
@@ -189,46 +188,47 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         The last fit, and per round the median match residual of the gauge it
         started from, the fit's RMS relative residual and its parameters.
     """
-    run = resolve(options)
-    run = resolve(run, gauge=StackModel.rendered(run.options.dark_level))
-    quick = run.replace(light_subsets=False, max_residual=None, max_distance=None, tile=None)
-    data = np.asarray(scene, dtype=np.float32)
-    m, _, _, _c = data.shape
-    brdf = BRDF.lambert()
-    history = []
-    if m < MIN_FIT_IMAGES:
-        warnings.warn(f"brdf: {m} images are too few to fit a finish (need "
-                      f"{MIN_FIT_IMAGES}); the virtual gauge is Lambertian", ColorPSWarning,
-                      stacklevel=2)
+    with one_blas_thread():
+        run = resolve(options)
+        run = resolve(run, gauge=StackModel.rendered(run.options.dark_level))
+        quick = run.replace(light_subsets=False, max_residual=None, max_distance=None, tile=None)
+        data = np.asarray(scene, dtype=np.float32)
+        m, _, _, _c = data.shape
+        brdf = BRDF.lambert()
+        history = []
+        if m < MIN_FIT_IMAGES:
+            warnings.warn(f"brdf: {m} images are too few to fit a finish (need "
+                          f"{MIN_FIT_IMAGES}); the virtual gauge is Lambertian", ColorPSWarning,
+                          stacklevel=2)
+            return brdf, history
+        rng = np.random.default_rng(0)
+        data, mask = _match_sample(data, mask, rng)
+        if progress:
+            print(f"brdf: fitting the scene's finish ({fits} rounds of matching and fitting)",
+                  file=sys.stderr)
+        for round_ in range(fits):
+            brdf, record = _fit_round(data, lights, brdf, quick, mask, radius, rng,
+                                      SETTLE_ROUNDS if round_ == 0 else 0)
+            history.append(dict(round=round_ + 1, **record))
+            if progress:
+                print(f"brdf fit {round_ + 1}/{fits}: {record['pixels']} pixels, RMS relative "
+                      f"residual {record['rms_relative']:.4f}, highlight "
+                      f"{max(brdf.specular):.4f} x shininess {brdf.shininess:.0f}, roughness "
+                      f"{brdf.roughness:.1f} rad (the scene matched the gauge before it at "
+                      f"{record['match_residual_median']:.2f} noise units)", file=sys.stderr)
+        start, fitted = history[0]["match_residual_median"], history[-1]["match_residual_median"]
+        kept = len(history) == 1 or fitted < start
+        history[-1]["kept"] = kept
+        if not kept:
+            # Not a warning: on a Lambertian scene the fit chases the noise and
+            # matches a few per cent worse (3-8 % on the synthetic sets), and
+            # Lambert is then the right answer.
+            if progress:
+                print(f"brdf: the fitted finish matched the scene no better than a Lambertian "
+                      f"one (median residual {fitted:.2f} vs {start:.2f} noise units): dropped, "
+                      "the virtual gauge is Lambertian", file=sys.stderr)
+            return BRDF.lambert(), history
         return brdf, history
-    rng = np.random.default_rng(0)
-    data, mask = _match_sample(data, mask, rng)
-    if progress:
-        print(f"brdf: fitting the scene's finish ({fits} rounds of matching and fitting)",
-              file=sys.stderr)
-    for round_ in range(fits):
-        brdf, record = _fit_round(data, lights, brdf, quick, mask, radius, rng,
-                                  SETTLE_ROUNDS if round_ == 0 else 0)
-        history.append(dict(round=round_ + 1, **record))
-        if progress:
-            print(f"brdf fit {round_ + 1}/{fits}: {record['pixels']} pixels, RMS relative "
-                  f"residual {record['rms_relative']:.4f}, highlight "
-                  f"{max(brdf.specular):.4f} x shininess {brdf.shininess:.0f}, roughness "
-                  f"{brdf.roughness:.1f} rad (the scene matched the gauge before it at "
-                  f"{record['match_residual_median']:.2f} noise units)", file=sys.stderr)
-    start, fitted = history[0]["match_residual_median"], history[-1]["match_residual_median"]
-    kept = len(history) == 1 or fitted < start
-    history[-1]["kept"] = kept
-    if not kept:
-        # Not a warning: on a Lambertian scene the fit chases the noise and
-        # matches a few per cent worse (3-8 % on the synthetic sets), and
-        # Lambert is then the right answer.
-        if progress:
-            print(f"brdf: the fitted finish matched the scene no better than a Lambertian "
-                  f"one (median residual {fitted:.2f} vs {start:.2f} noise units): dropped, "
-                  "the virtual gauge is Lambertian", file=sys.stderr)
-        return BRDF.lambert(), history
-    return brdf, history
 
 
 def _match_sample(data: np.ndarray, mask, rng: np.random.Generator):
