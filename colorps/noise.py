@@ -227,8 +227,10 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
     ----------
     gauge_stack : (m, H, W, c) ndarray
         Linear gauge images.
-    usable : (H, W) ndarray of bool
-        Gauge pixels whose measurements are all usable (no clip, no NaN).
+    usable : (H, W) or (m, H, W) ndarray of bool
+        Pixels whose measurements are all usable (no clip, no NaN), or each
+        image's own (a scene under many lights, where few pixels are lit in
+        every image: a pixel counts in the images that light it).
     base : NoiseModel
         Pixel type and encoding of the files; its read and gain are kept where
         the gauge cannot tell (too few pixels).
@@ -248,29 +250,39 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
     from scipy.optimize import nnls
 
     m, h, w, c = gauge_stack.shape
-    inner = binary_erosion(usable, np.ones((3, 3), bool), border_value=0)
-    if centre is not None and radius is not None:
-        yy, xx = np.mgrid[0:h, 0:w]
-        inner &= np.hypot(xx - centre[0], yy - centre[1]) < NOISE_RADIUS_FRACTION * radius
-    if inner.sum() < NOISE_MIN_PIXELS:
-        return base
+    usable = np.asarray(usable, dtype=bool)
+    box = mask_box(usable if usable.ndim == 2 else usable.any(axis=0))
     # Only the usable pixels' box is filtered: an inner pixel's 3 x 3 lies in it
     # (a scene's mask is often a small part of its images).
-    box = mask_box(usable)
-    usable, inner = usable[box], inner[box]
-    taken = np.flatnonzero(inner)
-    if taken.size > NOISE_SAMPLE_PIXELS:
-        taken = np.sort(np.random.default_rng(0).choice(taken, NOISE_SAMPLE_PIXELS,
-                                                        replace=False))
+    within = np.ones((h, w), dtype=bool)[box]
+    if centre is not None and radius is not None:
+        yy, xx = np.mgrid[0:h, 0:w]
+        within = (np.hypot(xx - centre[0], yy - centre[1]) < NOISE_RADIUS_FRACTION * radius)[box]
+
+    def sample(image_usable):  # inner pixels of one image's usable ones, and a sample
+        inner = binary_erosion(image_usable, np.ones((3, 3), bool), border_value=0) & within
+        taken = np.flatnonzero(inner)
+        if taken.size > NOISE_SAMPLE_PIXELS:
+            taken = np.sort(np.random.default_rng(0).choice(taken, NOISE_SAMPLE_PIXELS,
+                                                            replace=False))
+        return taken
+
+    shared = sample(usable[box]) if usable.ndim == 2 else None
     kernel = _quadratic_residual_filter()
     gain_factor = float((kernel * kernel).sum())  # var(residual) = factor * sigma^2
     values, residuals = [], []
     for i in range(m):
+        image_usable = usable[box] if shared is not None else usable[i][box]
+        taken = shared if shared is not None else sample(image_usable)
+        if taken.size < NOISE_MIN_PIXELS:
+            continue
         for k in range(c):  # one image's band at a time in float64
             image = np.asarray(gauge_stack[i, box[0], box[1], k], dtype=np.float64)
-            r = correlate(np.where(usable, image, 0.0), kernel, mode="nearest")
+            r = correlate(np.where(image_usable, image, 0.0), kernel, mode="nearest")
             values.append(image.ravel()[taken])
             residuals.append(r.ravel()[taken])
+    if not values:
+        return base
     v = np.concatenate(values)
     r = np.concatenate(residuals)
     edges = np.quantile(v, np.linspace(0, 1, NOISE_BINS + 1))

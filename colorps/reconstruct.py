@@ -38,7 +38,7 @@ from .memory import release_freed_memory
 from .noise import NoiseModel, estimate_noise
 from .options import MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason
-from .refine import Matched, Refinement, refine_normals
+from .refine import Matched, Refinement, misfit_radius, refine_normals
 from .resolve import Resolved, resolve
 from .results import Reconstruction, Timings, low_solved_message, run_statistics
 from .shadows import INLIER_Z, fixes_normal
@@ -157,11 +157,13 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
             # The noise's uncertainty or the one the residuals show along the
             # normal's directions, whichever is larger, grown by how much worse than
             # the noise the match explains the pixel (the reduced chi-square's root,
-            # its residual): a pixel the gauge explains poorly is less certain.
+            # its residual): a pixel the gauge explains poorly is less certain. Or,
+            # where larger, the misfit's own radius (refine.misfit_radius).
             misfit = np.maximum(1.0, np.nan_to_num(matches.quality[solved], nan=1.0))
             normals[solved] = refined.normals
-            uncertainty[solved] = np.fmax(refined.uncertainty,
-                                          refined.measured_uncertainty) * misfit
+            uncertainty[solved] = np.fmax(
+                np.fmax(refined.uncertainty, refined.measured_uncertainty) * misfit,
+                _misfit_radius(refined, matches, solved, setup.capture.images))
             offset = refined.offset
             del refined  # its other per-pixel arrays are not needed past here
             release_freed_memory()
@@ -358,6 +360,17 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
     solved[ys[rescued], xs[rescued]] = True
     kept = Refinement(*(getattr(refined, f.name)[keep] for f in dataclasses.fields(refined)))
     return solved, dataclasses.replace(matches, quality=quality, dropped=all_dropped), kept
+
+
+def _misfit_radius(refined: Refinement, matches: Matches, solved: np.ndarray,
+                   images: int) -> np.ndarray:
+    """(P,) :func:`refine.misfit_radius` of the solved pixels: the noise's radius
+    and the residual before the capture's model scale, over their bands and lights."""
+    bands = light_masks.count(matches.bands_used[solved][:, None])  # bits set: bands
+    lights = images - light_masks.count(matches.dropped[solved])
+    return misfit_radius(refined.uncertainty / matches.model_scale,
+                         matches.quality[solved] * matches.model_scale,
+                         bands * (lights - 1))
 
 
 def _albedo(scene_sig: SignatureSet, stack_box: np.ndarray | None, gauge_stack: np.ndarray,

@@ -39,6 +39,7 @@ __all__ = [
     "REFINE_METHODS",
     "Matched",
     "Refinement",
+    "misfit_radius",
     "noise_tables",
     "quadratic_models",
     "refine_normals",
@@ -59,6 +60,11 @@ REFINE_BLOCK = 2 ** 18
 #: For an isotropic 2-D Gaussian with sigma per axis, 68 % of the mass lies
 #: within this many sigma of the centre: sqrt(-2 ln(1 - 0.68)).
 RADIUS_68 = float(np.sqrt(-2.0 * np.log(1.0 - 0.68)))
+#: A residual counts as a misfit only where its square exceeds 1 by more than
+#: this many of the noise's own standard deviations, sqrt(2 / dof): below it,
+#: the noise alone explains it (1: 80 % coverage on clean renders, 3: the
+#: misfits' radii shrink; 2 is measured in docs/benchmarks.md).
+MISFIT_NOISE_SDS = 2.0
 
 
 @dataclass(frozen=True)
@@ -259,6 +265,39 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     finally:
         numba.set_num_threads(previous)
     return result
+
+
+def misfit_radius(unit_radius: np.ndarray, residual: np.ndarray,
+                  dof: np.ndarray) -> np.ndarray:
+    """How far the normal may be off where the gauge does not explain a pixel.
+
+    A misfit the noise does not explain (bounced light, another finish, a
+    varnish) shows in the residual only across the gauge's signatures; along
+    them, where it moves the normal, it is not seen. Taken as large along as
+    across, its size in noise units, sqrt((r^2 - 1) dof) (the part of the
+    residual's chi-square beyond the noise's, less MISFIT_NOISE_SDS of the
+    noise's own spread), moves the normal that many times the noise's sigma.
+
+    Parameters
+    ----------
+    unit_radius : (P,) ndarray
+        The noise's 68 % radius (degrees) for noise of one unit (before the
+        capture's model scale).
+    residual : (P,) ndarray
+        r of :mod:`colorps.residuals`, before the capture's model scale (NaN:
+        none, taken as explained).
+    dof : (P,) ndarray of int
+        Its degrees of freedom: bands matched x (lights used - 1).
+
+    Returns
+    -------
+    (P,) ndarray
+        Radius in degrees; 0 where the noise explains the residual.
+    """
+    dof = np.maximum(np.asarray(dof, dtype=np.float64), 1.0)
+    r2 = np.nan_to_num(np.asarray(residual, dtype=np.float64), nan=1.0) ** 2
+    excess = np.maximum(r2 - 1.0 - MISFIT_NOISE_SDS * np.sqrt(2.0 / dof), 0.0)
+    return unit_radius / RADIUS_68 * np.sqrt(excess * dof)
 
 
 def _refine_block(gauge, pixels, tables, gauge_normals: np.ndarray, model_scale: float,

@@ -105,9 +105,10 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
         run = resolve(options)
         settings = run.options
         if "auto" in (settings.read_noise, settings.gain):
-            usable = np.isfinite(scene).all(axis=(0, 3)) & (scene > 0).all(axis=(0, 3))
+            # Each image's lit pixels: under many lights few are lit in all.
+            usable = np.isfinite(scene).all(axis=3) & (scene > 0).all(axis=3)
             if mask is not None:
-                usable &= mask
+                usable &= np.asarray(mask, dtype=bool)
             fitted = estimate_noise(scene, usable, run.scene.noise)
             run = run.replace(
                 read_noise=fitted.read if settings.read_noise == "auto" else settings.read_noise,

@@ -39,6 +39,24 @@ def test_noise_fit_recovers_read_noise_and_gain(read, gain):
     assert fit.sigma(np.array([level]))[0] == pytest.approx(truth, rel=0.1)
 
 
+def test_noise_fit_of_a_scene_whose_pixels_are_lit_by_some_lights_only():
+    """Under 32 lights with cast shadows hardly a pixel is lit in every image, and
+    a fit on those alone finds nothing (the noise model stayed 0, and a
+    --lights run's uncertainties came out at 1e10 degrees); each image's own lit
+    pixels give the noise."""
+    from colorps.shapes import dome_lights, folds_surface
+
+    lights = dome_lights(32)
+    scene = folds_surface(100)
+    stack = synth.render(scene, lights, cast_shadows=True, noise=0.003, seed=1)
+    lit = (stack > 0).all(axis=3) & scene.mask  # (m, H, W)
+    base = NoiseModel(0, 0)
+    assert not estimate_noise(stack, lit.all(axis=0), base).estimated
+    fit = estimate_noise(stack, lit, base)
+    assert fit.estimated
+    assert fit.sigma(np.array([0.3]))[0] == pytest.approx(0.003, rel=0.15)
+
+
 def test_quantisation_of_srgb_codes_grows_with_the_level():
     q = quantisation_sigma(np.array([0.001, 0.05, 0.5, 0.9]), pixel_type="int")
     assert np.all(np.diff(q) > 0)

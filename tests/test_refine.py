@@ -169,6 +169,47 @@ def test_uncertainty_calibrated_on_folds_with_cast_shadows(folds):
     assert 0.55 <= np.mean(error[shadowed] <= uncertainty[shadowed]) <= 0.85
 
 
+def test_uncertainty_calibrated_with_calibrated_lights(folds):
+    """With --lights the noise is measured on the scene itself, each image's lit
+    pixels (too few are lit in all 24); the virtual gauge's radii were 1e10
+    degrees when that found nothing."""
+    from colorps import Lights, Options
+    from colorps.shapes import dome_lights
+    from colorps.virtual import virtual_gauge
+
+    scene, stack, _, _, _ = folds
+    lights = dome_lights(24)
+    gauge, run, _, _ = virtual_gauge(stack, Lights(lights.directions[:, 0], lights.colours[:, 0]),
+                                     Options(), mask=scene.mask)
+    assert run.options.read_noise == pytest.approx(0.003, rel=0.15)
+    result = reconstruct(stack, gauge.stack, gauge, run, mask=scene.mask)
+    ok = scene.mask & result.solved
+    error = angular_error(result.normals[ok], scene.normals[ok])
+    assert 0.6 <= np.mean(error <= result.uncertainty[ok]) <= 0.85
+    assert np.median(result.uncertainty[ok]) < 2 * np.median(error)
+
+
+def test_a_finish_the_gauge_lacks_widens_the_uncertainty():
+    """A rough scene against a Lambertian gauge: every normal is biased alike by
+    degrees, and only the residual (2-3 noise units) shows it. The misfit's
+    radius (refine.misfit_radius) takes the misfit as large along the gauge's
+    signatures as across them: the median radius is a third of the median
+    error or more (a fifth when the misfit only scaled the noise's radius)."""
+    from colorps.shapes import dome_lights
+
+    lights = dome_lights(16)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lights, brdf="oren-nayar", roughness=0.3, noise=0.002, seed=2)
+    ball = synth.sphere_surface(130, 60)
+    gauge_stack = synth.render(ball, lights, noise=0.002, seed=3)
+    result = reconstruct(stack, gauge_stack, Gauge.from_sphere((130, 130), 64.5, 64.5, 60),
+                         mask=scene.mask)
+    ok = scene.mask & result.solved
+    error = angular_error(result.normals[ok], scene.normals[ok])
+    assert np.median(error) > 2.0  # the bias is there
+    assert np.median(result.uncertainty[ok]) > 0.3 * np.median(error)
+
+
 def test_pixels_matched_on_the_gauges_rim_are_refined_too(folds):
     """Steep groove walls match the gauge's outermost usable ring, whose pixels
     have no full neighbourhood to model: they start from a neighbour's model
