@@ -298,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "Lambertian fit of its shading")
     cal.add_argument("--camera", type=_camera, metavar="F|K.txt|FILE.json",
                      help="with --matte: the pinhole camera, as for reconstruct")
+    cal.add_argument("--albedo", type=_albedo, default=1.0, metavar="A|R,G,B",
+                     help="with --matte: the sphere's albedo (intensities are relative to it)")
     cal.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="sphere silhouette in pixels, or 'auto' to find it")
     cal.add_argument("--sphere-mask", metavar="FILE",
@@ -489,7 +491,8 @@ def _run(args, received: list[int]) -> int:
         elif args.command == "calibrate-lights":
             _, found, sphere, table, written = calibrate_lights_files(
                 args.images, args.sphere, args.out, sphere_mask=args.sphere_mask,
-                matte=args.matte, camera=args.camera, overwrite=args.overwrite)
+                matte=args.matte, camera=args.camera, albedo=args.albedo,
+                overwrite=args.overwrite)
             print(f"sphere at {sphere[0]:.1f},{sphere[1]:.1f} radius {sphere[2]:.1f} px")
             print("\n".join(table))
             print(f"wrote {len(found)} lights to {', '.join(map(str, written))}")

@@ -28,7 +28,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError
-from .gauge import Gauge
+from .gauge import Gauge, parse_albedo
 from .gauge_check import lambertian_fit
 from .lights import DIRECTION_HEADER, MIN_ELEVATION_Z, Lights, direction_columns
 
@@ -109,7 +109,7 @@ def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0
         values = np.where((values < clip_level).all(axis=2, keepdims=True), values, np.nan)
     normals = gauge.normals[gauge.mask]
     vectors, lit = lambertian_fit(values.sum(axis=2), normals)
-    albedo = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (images.shape[3],))
+    albedo = parse_albedo(albedo, images.shape[3])
     found = [_light(values[k, lit[k]], normals[lit[k]], vectors[k], albedo, name)
              for k, name in enumerate(names)]
     lights = Lights(np.array([f.direction for f in found]),

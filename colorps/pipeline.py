@@ -493,7 +493,8 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
 def calibrate_lights_files(image_patterns: str | Sequence[str],
                            sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
                            sphere_mask=None, matte: bool = False, encoding="auto",
-                           camera: Camera | None = None, overwrite: bool = False):
+                           camera: Camera | None = None, albedo=1.0,
+                           overwrite: bool = False):
     """Lights from a sphere's images, written as a light file.
 
     Parameters
@@ -517,6 +518,9 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
     camera : Camera, optional
         With ``matte``: the pinhole camera the images were taken with (the
         sphere's normals from the true rays). Default orthographic.
+    albedo : float or (c,) array_like, optional
+        With ``matte``: the sphere's albedo, one value or one per band (the
+        intensities are relative to it; default 1).
 
     Returns
     -------
@@ -532,9 +536,9 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
     if not out.parent.is_dir():
         raise OutputError(f"{out.parent}: output folder does not exist")
     what = "matte sphere" if matte else "mirror sphere"
-    if camera is not None and not matte:
-        raise InputError("--camera: only a matte sphere (--matte) is read through a lens; "
-                         "a mirror sphere's highlights are read orthographically")
+    if (camera is not None or np.any(np.asarray(albedo) != 1.0)) and not matte:
+        raise InputError("--camera and --albedo are for a matte sphere (--matte): a mirror "
+                         "sphere's highlights give directions only, read orthographically")
     paths = expand_paths(image_patterns, name=what)
     info = check_stack_files(paths, name=what)[0]
     if (sphere is None) == (sphere_mask is None):
@@ -552,7 +556,7 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
     fit, table = (matte_sphere_lights, matte_table) if matte else \
         (calibrate_lights, highlight_table)
     lights, found = fit(stack, found_sphere, clip_level=input_levels(info, encoding)[0],
-                        names=names, **({"camera": camera} if matte else {}))
+                        names=names, **({"camera": camera, "albedo": albedo} if matte else {}))
     write_lights(lights, out)
     if len(targets) > 1:
         write_intensities(lights, targets[1])

@@ -108,6 +108,11 @@ def test_calibrate_lights_matte_writes_the_lights(rough_capture, tmp_path, capsy
     assert len(json.loads((tmp_path / "lights.json").read_text())["intensities"][0]) == 3
     assert sorted(p.name for p in tmp_path.glob("*intensities*")) == [
         "lights_intensities.txt"]
+    # A grey sphere of known albedo: the intensities are the lights' own.
+    assert main(["calibrate-lights", str(folder / "gauge_*.exr"), "--sphere", "auto",
+                 "--matte", "--albedo", "0.5", "--out", str(tmp_path / "grey.json")]) == 0
+    grey = read_lights(tmp_path / "grey.json")
+    assert np.abs(grey.intensities / (2 * colours) - 1).max() < 0.01
 
 
 def test_a_gauge_of_another_finish_is_noticed_and_solved(rough_capture, tmp_path, capsys):
@@ -261,4 +266,4 @@ def test_another_finish_through_a_lens_is_solved(rough_capture_through_a_lens, t
     assert angular_error(lights.directions, lighting.directions[:, 0]).max() < 0.2
     assert main(["calibrate-lights", str(folder / "gauge_*.exr"), "--sphere", "auto",
                  "--camera", "300", "--out", str(tmp_path / "mirror.txt")]) == 1
-    assert "only a matte sphere" in capsys.readouterr().err
+    assert "for a matte sphere (--matte)" in capsys.readouterr().err
