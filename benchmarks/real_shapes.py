@@ -83,8 +83,10 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
         focal = 6 * 2 * radius
         camera = Camera(focal, focal, centre - 1.6 * radius, centre)
     gauge = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius, camera=camera)
-    ball = synth.SyntheticSurface(normals=np.where(gauge.mask[..., None], gauge.normals, 0.0),
-                                  mask=gauge.mask, albedo=np.ones((gauge_size, gauge_size, 3)),
+    whole = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius, rim_margin=0.0,
+                              camera=camera)  # the sphere as photographed, to its edge
+    ball = synth.SyntheticSurface(normals=np.where(whole.mask[..., None], whole.normals, 0.0),
+                                  mask=whole.mask, albedo=np.ones((gauge_size, gauge_size, 3)),
                                   height=np.zeros((gauge_size, gauge_size)))
     gauge_stack = synth.render(ball, lights, brdf=gauge_brdf, roughness=0.3, noise=NOISE,
                                seed=2, gloss=Gloss(gauge_gloss, "ggx", alpha=GGX_ALPHA))

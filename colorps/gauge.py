@@ -15,7 +15,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import GaugeError, InputError
-from .geometry import sphere_normals
+from .geometry import circle_of_cone, silhouette_cone, sphere_normals
 
 __all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo"]
 
@@ -214,7 +214,7 @@ class Gauge:
         return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack)
 
 
-def find_sphere(stack) -> tuple[float, float, float]:
+def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, float]:
     """Find the gauge sphere's silhouette in a gauge stack.
 
     The brightest value of every pixel over all images is taken (the union of
@@ -241,10 +241,21 @@ def find_sphere(stack) -> tuple[float, float, float]:
     outline and span MIN_ARC_DEG around the centre, the region lies within the
     circle and covers MIN_COVER of it.
 
+    Through a lens (``camera``) the sphere's image is an ellipse, and a circle
+    fitted to the lit arc of it alone is off by pixels (a sphere 0.8 diameters
+    off the axis at a focal length of 6 diameters, lit by a dome: radius 57.95
+    for 60). The edge points' rays are fitted instead by the cone of rays
+    tangent to the sphere (:func:`colorps.geometry.silhouette_cone`, on the
+    circle's inliers, then again on every edge point within
+    RANSAC_RESIDUAL_PX of that cone), and the circle returned is the one that
+    stands for that cone in :func:`colorps.geometry.sphere_normals`.
+
     Parameters
     ----------
     stack : (m, H, W, c) array_like
         Linear gauge images.
+    camera : Camera, optional
+        The pinhole camera the images were taken with (default orthographic).
 
     Returns
     -------
@@ -305,7 +316,7 @@ def find_sphere(stack) -> tuple[float, float, float]:
             f"explains {inliers.mean():.0%} of the outline over a {arc:.0f} degree arc, "
             f"{inside:.0%} of the region inside it, covering {cover:.0%} of the disk); "
             "give --sphere CX,CY,R")
-    return _edge_circle(brightest, (cx, cy, r), bright)
+    return _edge_circle(brightest, (cx, cy, r), bright, camera)
 
 
 def _ransac_circle(points: np.ndarray):
@@ -328,7 +339,7 @@ def _circle_of(model) -> tuple[float, float, float]:
 
 
 def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
-                 bright: float) -> tuple[float, float, float]:
+                 bright: float, camera: Camera | None = None) -> tuple[float, float, float]:
     """The circle through the sphere's edge near ``circle`` (see :func:`find_sphere`);
     ``circle`` itself when too few radii cross a lit edge."""
     from scipy.ndimage import map_coordinates
@@ -355,4 +366,22 @@ def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
     model, inliers = _ransac_circle(points)
     if model is None or inliers is None or inliers.mean() < MIN_INLIER_FRACTION:
         return circle
+    if camera is not None:
+        return _edge_cone(points, inliers, camera, brightest.shape)
     return _circle_of(model)
+
+
+def _edge_cone(points: np.ndarray, inliers: np.ndarray, camera: Camera,
+               shape: tuple[int, int]) -> tuple[float, float, float]:
+    """The circle standing for the cone of rays through the edge ``points`` (x, y):
+    fitted to the circle's ``inliers``, then to every point within
+    RANSAC_RESIDUAL_PX of that cone."""
+    rays = camera.rays(points[:, 0], points[:, 1], shape)
+    axis, alpha = silhouette_cone(rays[inliers])
+    focal = (camera.fx + camera.fy) / 2.0
+    off_px = np.abs(np.arccos(np.clip(rays @ axis, -1.0, 1.0)) - alpha) * focal
+    near = off_px <= RANSAC_RESIDUAL_PX
+    if near.sum() >= MIN_OUTLINE_POINTS:
+        axis, alpha = silhouette_cone(rays[near])
+    return circle_of_cone(axis, alpha, camera, shape)
+

@@ -11,7 +11,7 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["angular_error", "sphere_normals"]
+__all__ = ["angular_error", "circle_of_cone", "silhouette_cone", "sphere_normals"]
 
 #: Newton steps fitting a sphere's cone to its silhouette circle (converges in 3-4).
 CONE_NEWTON_STEPS = 8
@@ -119,6 +119,54 @@ def _pinhole_sphere_normals(x, y, cx, cy, radius, camera: Camera, shape):
     return normals, rho
 
 
+def _ellipse_of_cone(theta: float, alpha: float) -> tuple[float, float, float]:
+    """(e, a, b) of the image ellipse (unit focal length) of a cone of half-angle
+    alpha whose axis is theta off the optical axis (see :func:`_cone_of_circle`)."""
+    k = np.cos(theta) ** 2 - np.sin(alpha) ** 2
+    return (np.sin(theta) * np.cos(theta) / k, np.sin(alpha) * np.cos(alpha) / k,
+            np.sin(alpha) / np.sqrt(k))
+
+
+def silhouette_cone(rays: np.ndarray) -> tuple[np.ndarray, float]:
+    """The cone of rays tangent to a sphere, fitted to rays through its edge.
+
+    A ray d through the silhouette makes the cone's half-angle alpha with its
+    axis u: d . u = cos(alpha), i.e. d . v = 1 for v = u / cos(alpha), which is
+    linear in v: fitted by least squares.
+
+    Parameters
+    ----------
+    rays : (N, 3) ndarray
+        Unit rays (:meth:`colorps.camera.Camera.rays`) through edge points, N >= 3.
+
+    Returns
+    -------
+    axis : (3,) ndarray
+        Unit direction of the sphere's centre (camera space, z < 0 in front).
+    alpha : float
+        The cone's half-angle, radians.
+    """
+    v = np.linalg.lstsq(np.asarray(rays, dtype=np.float64), np.ones(len(rays)), rcond=None)[0]
+    norm = float(np.linalg.norm(v))
+    return v / norm, float(np.arccos(min(1.0, 1.0 / norm)))
+
+
+def circle_of_cone(axis: np.ndarray, alpha: float, camera: Camera,
+                   shape: tuple[int, int]) -> tuple[float, float, float]:
+    """The circle (cx, cy, r) that stands for a sphere's cone in
+    :func:`sphere_normals` (the one fitted to its image ellipse: the ellipse's
+    centre, the mean of its semi-axes), in pixels of an image of ``shape``."""
+    px, py = camera.principal(shape)
+    focal = (camera.fx + camera.fy) / 2.0
+    theta = float(np.arccos(np.clip(-axis[2], -1.0, 1.0)))
+    e, a, b = _ellipse_of_cone(theta, alpha)
+    sideways = np.hypot(axis[0], axis[1])
+    radial = np.array([axis[0], -axis[1]]) / sideways if sideways > 0 else np.zeros(2)
+    offset = radial * e * focal
+    return (float(px + offset[0] * camera.fx / focal), float(py + offset[1] * camera.fy / focal),
+            float((a + b) / 2.0 * focal))
+
+
 def _cone_of_circle(distance: float, radius: float) -> tuple[float, float]:
     """(theta_c, alpha) of the cone whose image ellipse a circle stands for.
 
@@ -139,11 +187,7 @@ def _cone_of_circle(distance: float, radius: float) -> tuple[float, float]:
     x = np.array([(near + far) / 2.0, (far - near) / 2.0])
 
     def misfit(v):
-        theta, alpha = v
-        k = np.cos(theta) ** 2 - np.sin(alpha) ** 2
-        e = np.sin(theta) * np.cos(theta) / k
-        a = np.sin(alpha) * np.cos(alpha) / k
-        b = np.sin(alpha) / np.sqrt(k)
+        e, a, b = _ellipse_of_cone(*v)
         return np.array([e - distance, (a + b) / 2.0 - radius])
 
     for _ in range(CONE_NEWTON_STEPS):

@@ -30,6 +30,7 @@ import numpy as np
 
 from . import _pixel_kernels, light_masks
 from ._config import AUTO_N_SAMPLE, MIN_LIGHTS
+from .clipped_gauge import rematch_near_clipped
 from .noise import NoiseModel
 from .options import Options
 from .residuals import light_residuals
@@ -150,6 +151,9 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
         model_scale = measured_model_scale(state.quality[matched & sampled &
                                                          np.isfinite(state.quality)])
     state.quality[matched] /= model_scale
+    if options.light_subsets:
+        state.groups += [MatchGroup(*record) for record in
+                         rematch_near_clipped(capture, state, options, model_scale)]
     if options.light_subsets and capture.images >= MIN_LIGHTS + 1:
         if capture.images <= GREEDY_MAX_LIGHTS:
             _light_subsets(capture, state, options, model_scale)

@@ -313,7 +313,8 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
         return gauge, gauge.stack, run, (brdf, fits), checked, scene
     gauge_stack, _ = read_stack(stacks.gauge_paths, encoding, name="gauge", progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")
-    sphere = find_sphere(gauge_stack) if inputs.sphere == "auto" else tuple(inputs.sphere)
+    sphere = find_sphere(gauge_stack, inputs.camera) if inputs.sphere == "auto" \
+        else tuple(inputs.sphere)
     gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
                               camera=inputs.camera)
     checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
@@ -551,7 +552,7 @@ def calibrate_lights_files(image_patterns: str | Sequence[str],
         except InputError as exc:
             raise InputError(f"{sphere_mask}: {exc}") from None
     else:
-        found_sphere = find_sphere(stack) if sphere == "auto" else tuple(sphere)
+        found_sphere = find_sphere(stack, camera) if sphere == "auto" else tuple(sphere)
     names = [p.name for p in paths]
     fit, table = (matte_sphere_lights, matte_table) if matte else \
         (calibrate_lights, highlight_table)

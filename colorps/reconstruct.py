@@ -257,7 +257,10 @@ def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) ->
         gauge_ov=gauge_sig.ov, gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
         gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
         gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
-        scene_invalid=scene_sig.band_invalid_value.any(axis=-1), tables=tables)
+        scene_invalid=scene_sig.band_invalid_value.any(axis=-1),
+        gauge_clipped=np.where(gauge.mask[..., None], gauge_sig.clipped_lights, np.uint64(0)),
+        gauge_unclipped=~gauge_sig.band_invalid_value & ~gauge_sig.band_dark &
+        gauge.mask[..., None], tables=tables)
     return _Setup(capture, scene_sig, gauge_sig, usable_gauge, said,
                   time.perf_counter() - t0)
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _grid_kernels, _pixel_kernels
+from . import _grid_kernels, _pixel_kernels, light_masks
 from ._config import AUTO_N_SAMPLE
 from .errors import InputError
 from .grid import BucketGrid
@@ -216,6 +216,12 @@ class Capture:
         Smallest usable OV norm over any light subset.
     gauge_model : NoiseModel, optional
         Of the gauge's measurements, when its files differ from the scene's.
+    gauge_clipped : (Hg, Wg, words) ndarray of uint64, optional
+        Light masks of the images with a clipped measurement at a gauge pixel.
+    gauge_unclipped : (Hg, Wg, B) ndarray of bool, optional
+        Bands of gauge pixels inside the gauge mask that would be usable but
+        for clipped measurements: over lights that leave out every clipped one
+        of a pixel, its band is usable (``gauge_valid`` holds over all lights).
     tables : GaugeTables, optional
         Grids kept from other pieces of the same capture (checked against
         :meth:`gauge_fingerprint`), and offered the ones built here.
@@ -231,6 +237,8 @@ class Capture:
     gauge_model: NoiseModel | None = None
     scene_clipped: np.ndarray | None = None
     scene_invalid: np.ndarray | None = None
+    gauge_clipped: np.ndarray | None = None
+    gauge_unclipped: np.ndarray | None = None
     tables: GaugeTables | None = None
     _light_sets: OrderedDict = field(default_factory=OrderedDict)
     _gauge_variance: np.ndarray | None = None
@@ -255,6 +263,8 @@ class Capture:
 
         digest = hashlib.blake2b(np.ascontiguousarray(self.gauge_ov).tobytes())
         digest.update(np.ascontiguousarray(self.gauge_valid).tobytes())
+        if self.gauge_clipped is not None:
+            digest.update(np.ascontiguousarray(self.gauge_clipped).tobytes())
         digest.update(repr((self.gauge_ov.shape, float(self.min_norm))).encode())
         return digest.digest()
 
@@ -272,14 +282,23 @@ class Capture:
             variance = np.empty((hg, wg, n_bands), dtype=np.float32)
             usable = np.empty((hg, wg, n_bands), dtype=bool)
             light_index = np.array(lights, dtype=np.int64)
-            _pixel_kernels.light_set(self.gauge_ov, light_index,
-                                     np.ascontiguousarray(self.gauge_valid),
+            _pixel_kernels.light_set(self.gauge_ov, light_index, self._valid_over(lights),
                                      float(self.min_norm), self._gauge_variance, norm2,
                                      variance, usable)
             self._light_sets[lights] = _LightSet(gauge_ov=self.gauge_ov, lights=light_index,
                                                  norm2=norm2, variance=variance, usable=usable)
             self._forget_light_sets(keep=lights)
         return self._light_sets[lights]
+
+    def _valid_over(self, lights: tuple[int, ...]) -> np.ndarray:
+        """(Hg, Wg, B) gauge bands valid over ``lights``: valid over every light,
+        or valid but for clipped measurements none of which is among ``lights``."""
+        valid = np.ascontiguousarray(self.gauge_valid)
+        if self.gauge_clipped is None or self.gauge_unclipped is None:
+            return valid
+        chosen = light_masks.from_bool(np.isin(np.arange(self.images), lights))
+        untouched = ~(self.gauge_clipped & chosen).any(axis=-1)
+        return np.ascontiguousarray(valid | (self.gauge_unclipped & untouched[..., None]))
 
     def _forget_light_sets(self, keep: tuple[int, ...]) -> None:
         """Drop the least recently used light sets beyond LIGHT_SET_CACHE_MIB."""

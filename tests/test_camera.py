@@ -252,3 +252,28 @@ def test_a_view_dependent_finish_is_matched_along_each_pixels_ray():
     assert after < 0.4 * before, (before, after)
     on_axis = view_corrected(stack.copy(), first, lights, brdf, Camera(1e9, 1e9))
     np.testing.assert_allclose(on_axis, stack, atol=1e-6)
+
+
+def test_sphere_auto_through_a_lens_fits_the_cone_of_rays():
+    """A sphere 2.5 radii off the axis at a focal length of 8 radii, lit by a
+    dome of lights and stored in 8 bits: its image is an ellipse, and the circle
+    fitted to its lit arc is pixels off. Given the camera, find_sphere fits the
+    cone of rays through the edge and returns the circle that stands for it."""
+    from colorps import find_sphere, synth
+    from colorps.io import srgb_decode, srgb_encode
+    from colorps.shapes import dome_lights
+
+    radius, side = 60, 130
+    centre = (side - 1) / 2
+    camera = Camera(8 * radius, 8 * radius, centre - 2.5 * radius, centre)
+    sphere = Gauge.from_sphere((side, side), centre, centre, radius, rim_margin=0.0,
+                               camera=camera)
+    ball = synth.SyntheticSurface(normals=np.where(sphere.mask[..., None], sphere.normals, 0.0),
+                                  mask=sphere.mask, albedo=np.ones((side, side, 3)),
+                                  height=np.zeros((side, side)))
+    stack = synth.render(ball, dome_lights(32), noise=0.003, seed=2)
+    stack = srgb_decode(np.round(srgb_encode(np.clip(stack, 0, 1)) * 255) / 255)
+    found = np.array(find_sphere(stack, camera))
+    assert np.abs(found - (centre, centre, radius)).max() < 0.15
+    plain = np.array(find_sphere(stack))
+    assert np.abs(plain - (centre, centre, radius)).max() > 1.0
