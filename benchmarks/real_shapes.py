@@ -13,8 +13,9 @@ through a lens off the optical axis (pinhole, focal length 6 gauge diameters,
 the sphere 0.8 diameters off the axis: 7.6 degrees), read with the camera (and,
 in the next row, without it); a white GGX coat (alpha 0.3, the microfacet lobe
 of physically based renderers) of Fresnel reflectance 0.5 on scene and gauge,
-and a varnish (0.04) on the scene only. ``--only TEXT`` runs the sets whose
-names hold it.
+and a varnish (0.04) on the scene only; an 8-bit gauge exposed 1.01 times
+brighter and clipped at the top code (where lights meet it head on), read
+with that clip level. ``--only TEXT`` runs the sets whose names hold it.
 
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
@@ -69,7 +70,7 @@ def quantise_srgb(stack: np.ndarray) -> np.ndarray:
 
 def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: bool, *,
              interreflection: float = 0.0, perspective: bool = False, gloss: float = 0.0,
-             gauge_gloss: float = 0.0):
+             gauge_gloss: float = 0.0, gauge_exposure: float | None = None):
     lights = dome_lights(m)
     scene = folds_surface(size)
     stack = synth.render(scene, lights, brdf=scene_brdf, roughness=0.3, noise=NOISE, seed=1,
@@ -90,6 +91,8 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
                                   height=np.zeros((gauge_size, gauge_size)))
     gauge_stack = synth.render(ball, lights, brdf=gauge_brdf, roughness=0.3, noise=NOISE,
                                seed=2, gloss=Gloss(gauge_gloss, "ggx", alpha=GGX_ALPHA))
+    if gauge_exposure is not None:  # exposed this much brighter, clipped at 1 as files are
+        gauge_stack = np.minimum(gauge_exposure * gauge_stack, 1.0)
     if eight_bit:
         stack, gauge_stack = quantise_srgb(stack), quantise_srgb(gauge_stack)
     return scene, lights, stack, gauge_stack, gauge
@@ -159,7 +162,9 @@ def main(argv=None) -> None:
             ("32 lights, glossy (GGX coat F0 0.5) scene and gauge", 32, "lambert", "lambert",
              False, {"gloss": 0.5, "gauge_gloss": 0.5}),
             ("32 lights, varnished (GGX coat F0 0.04) scene, matte gauge", 32, "lambert",
-             "lambert", False, {"gloss": 0.04})]
+             "lambert", False, {"gloss": 0.04}),
+            ("32 lights, 8-bit sRGB, gauge exposed 1.01x and clipped", 32, "lambert", "lambert",
+             True, {"gauge_exposure": 1.01})]
     for name, m, scene_brdf, gauge_brdf, eight_bit, extra in sets:
         if args.only not in name:
             continue
@@ -167,7 +172,8 @@ def main(argv=None) -> None:
                                                             gauge_brdf, eight_bit, **extra)
         mask = scene.mask
         t0 = time.perf_counter()
-        result = reconstruct(stack, gauge_stack, gauge, mask=mask)
+        clip = {"clip_level": 1.0} if "gauge_exposure" in extra else {}
+        result = reconstruct(stack, gauge_stack, gauge, mask=mask, **clip)
         seconds = time.perf_counter() - t0
         plain = None
         if extra.get("perspective"):  # the same images, the gauge read orthographically

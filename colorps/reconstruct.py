@@ -152,7 +152,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         offset = np.zeros((int(solved.sum()), 2), dtype=np.float32)
         t0 = time.perf_counter()
         if options.refine != "none" and (solved | poor).any():
-            solved, matches, refined = _refine(setup.capture, gauge, setup.gauge_sig, matches,
+            solved, matches, refined = _refine(setup.capture, gauge, matches,
                                                solved, poor, options)
             # The noise's uncertainty or the one the residuals show along the
             # normal's directions, whichever is larger, grown by how much worse than
@@ -321,7 +321,7 @@ def _check_inputs(scene, gauge_stack, gauge: Gauge, mask, mode: str):
     return scene, gauge_stack, mask.astype(bool)
 
 
-def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Matches,
+def _refine(capture: Capture, gauge: Gauge, matches: Matches,
             solved: np.ndarray, poor: np.ndarray, options: Options
             ) -> tuple[np.ndarray, Matches, Refinement]:
     """Refine the solved pixels' normals, weighting each measurement by its noise.
@@ -342,8 +342,11 @@ def _refine(capture: Capture, gauge: Gauge, gauge_sig: SignatureSet, matches: Ma
     ys, xs = np.nonzero(tried)
     matched = Matched(ys, xs, matches.row[ys, xs], matches.bands_used[ys, xs],
                       matches.dropped[ys, xs])
+    # The gauge's models are fitted where its bands are usable but for clipped
+    # measurements: a pixel near a clipped patch leaves those lights out (or its
+    # robust fit down-weights them); without them it kept the table's normal.
     refined = refine_normals(capture.scene_ov, capture.gauge_ov, gauge.normals,
-                             gauge.mask & gauge_sig.valid, matched, capture.model,
+                             capture.gauge_unclipped.all(axis=-1), matched, capture.model,
                              capture.gauge_model or capture.model,
                              model_scale=matches.model_scale, outlier_z=INLIER_Z,
                              threads=options.threads)
