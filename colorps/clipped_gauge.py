@@ -13,9 +13,8 @@ NEAR_PX of gauge pixels with clipped lights again without those lights, and
 keeps that match where it explains the pixel better (a lower residual): one
 table per set of lights left out, MAX_GROUPS of them at most. Pixels already
 without lights of their own (clipped in the scene) are left to the per-pixel
-fit of :mod:`colorps.shadows`. Those
-lights join the pixel's dropped ones (``lights.exr``). A gauge with nothing
-clipped costs nothing.
+fit of :mod:`colorps.shadows`. Those lights join the pixel's dropped ones
+(``lights.exr``). A gauge with nothing clipped costs nothing.
 """
 
 from __future__ import annotations
@@ -25,7 +24,7 @@ import numpy as np
 from . import light_masks
 from ._config import AUTO_N_SAMPLE, MIN_LIGHTS
 from .options import Options
-from .tables import Capture
+from .tables import Capture, group_rows
 
 __all__ = ["MAX_GROUPS", "NEAR_PX", "rematch_near_clipped"]
 
@@ -59,9 +58,7 @@ def rematch_near_clipped(capture: Capture, state, options: Options,
     ys, xs, without = ys[todo], xs[todo], without[todo]
     codes = state.bands_used[ys, xs]
     records = []
-    keys, inverse = np.unique(np.column_stack([without.view(np.int64), codes.astype(np.int64)]),
-                              axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    keys, inverse = group_rows(np.column_stack([without.view(np.int64), codes.astype(np.int64)]))
     for g in np.argsort(-np.bincount(inverse), kind="stable")[:MAX_GROUPS]:
         key = keys[g]
         pick = np.flatnonzero(inverse == g)

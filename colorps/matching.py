@@ -35,7 +35,7 @@ from .noise import NoiseModel
 from .options import Options
 from .residuals import light_residuals
 from .shadows import solve_shadowed
-from .tables import Capture, GroupResult
+from .tables import Capture, GroupResult, group_rows
 
 __all__ = [
     "MatchGroup",
@@ -139,8 +139,11 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
     (m - 1) >= 2). In colour mode with ``band_weights`` each band is weighted
     by its signal-to-noise ratio (:func:`colorps.matching.weight_levels`).
     The residuals are then divided by the capture's model scale, and, with
-    ``light_subsets``, pixels left far outside the noise are re-matched
-    without their most deviant light (:func:`_light_subsets`). ``origin`` is
+    ``light_subsets``, pixels matched next to the gauge's clipped patches are
+    matched again without those lights
+    (:func:`colorps.clipped_gauge.rematch_near_clipped`) and pixels left far
+    outside the noise are re-matched without their most deviant light
+    (:func:`_light_subsets`). ``origin`` is
     the (row, column) of the whole scene where ``mask`` begins (the model
     scale's pixels are counted from the whole scene's corner).
     """
@@ -210,7 +213,7 @@ def _match_groups(capture: Capture, state: _MatchState, pixels, options: Options
     code = (valid * (1 << np.arange(n_bands))).sum(axis=-1)
     words = dropped.shape[1]
     # One int64 row per pixel: its light-mask words (bit for bit), bands, levels.
-    keys, inverse = _group_rows(np.column_stack([dropped.view(np.int64), code.astype(np.int64),
+    keys, inverse = group_rows(np.column_stack([dropped.view(np.int64), code.astype(np.int64),
                                                  levels.astype(np.int64)]))
     order = np.argsort(-np.bincount(inverse), kind="stable")
     with tqdm(total=len(ys), desc="matching", unit="px", unit_scale=True,
@@ -425,7 +428,7 @@ def _drop_one_more(capture: Capture, state: _MatchState, options: Options,
     dropped = state.dropped[ys, xs]
     codes = state.bands_used[ys, xs].astype(np.uint64)
     which_pixel, which_light = np.nonzero(_lights_to_try(capture, state, ys, xs))
-    keys, inverse = _group_rows(
+    keys, inverse = group_rows(
         np.column_stack([dropped[which_pixel] | bits[which_light], codes[which_pixel]]))
     for g in np.argsort(-np.bincount(inverse), kind="stable")[:MAX_SUBSET_GROUPS]:
         pick = np.flatnonzero(inverse == g)
@@ -492,33 +495,6 @@ def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
         key = key.astype(np.uint16)  # numpy sorts small integers by radix sort
     order = np.argsort(key, kind="stable")
     return ys[order], xs[order]
-
-
-def _group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of a (P, k) integer array and each row's group index.
-
-    What ``np.unique(rows, axis=0, return_inverse=True)`` returns (groups in
-    lexicographic order), from one 1-D unique of a mixed-radix code of each
-    row: columns of a small range of values are digits as they are, others are
-    first replaced by their rank, and the code is compacted whenever the next
-    digit could overflow it.
-    """
-    group = np.zeros(len(rows), dtype=np.int64)
-    span = 1  # group < span
-    for column in rows.T:
-        low, high = int(column.min(initial=0)), int(column.max(initial=0))
-        if high - low < 1 << 16:
-            digit, width = column - low, high - low + 1
-        else:
-            _, digit = np.unique(column, return_inverse=True)
-            width = int(digit.max(initial=0)) + 1
-        if span * width >= 1 << 62:
-            _, group = np.unique(group, return_inverse=True)
-            span = int(group.max(initial=0)) + 1
-        group = group * width + digit.ravel()
-        span *= width
-    _, first, group = np.unique(group, return_index=True, return_inverse=True)
-    return rows[first], group.ravel()
 
 
 def weight_levels(snr: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ from .grid import BucketGrid
 from .noise import NoiseModel
 from .residuals import GaugeOverLights, MatchedGroup, match_residual, table_resolution
 
-__all__ = ["Capture", "GaugeTables", "GroupResult", "nearest"]
+__all__ = ["Capture", "GaugeTables", "GroupResult", "group_rows", "nearest"]
 
 # ---------------------------------------------------------------- tuning
 #: A table needs at least this many gauge entries; a group with fewer is not matched.
@@ -348,3 +348,30 @@ class Capture:
             self.model)
         return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
                            t_grid, t_lookup)
+
+
+def group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of a (P, k) integer array and each row's group index.
+
+    What ``np.unique(rows, axis=0, return_inverse=True)`` returns (groups in
+    lexicographic order), from one 1-D unique of a mixed-radix code of each
+    row: columns of a small range of values are digits as they are, others are
+    first replaced by their rank, and the code is compacted whenever the next
+    digit could overflow it.
+    """
+    group = np.zeros(len(rows), dtype=np.int64)
+    span = 1  # group < span
+    for column in rows.T:
+        low, high = int(column.min(initial=0)), int(column.max(initial=0))
+        if high - low < 1 << 16:
+            digit, width = column - low, high - low + 1
+        else:
+            _, digit = np.unique(column, return_inverse=True)
+            width = int(digit.max(initial=0)) + 1
+        if span * width >= 1 << 62:
+            _, group = np.unique(group, return_inverse=True)
+            span = int(group.max(initial=0)) + 1
+        group = group * width + digit.ravel()
+        span *= width
+    _, first, group = np.unique(group, return_index=True, return_inverse=True)
+    return rows[first], group.ravel()

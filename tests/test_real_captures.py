@@ -289,7 +289,7 @@ def test_8bit_one_sided_capture_with_defaults_and_auto_sphere(tmp_path):
 
 
 def test_pixel_groups_are_the_distinct_rows():
-    from colorps.matching import _group_rows
+    from colorps.tables import group_rows
 
     rng = np.random.default_rng(5)
     rows = np.column_stack([rng.integers(0, 3, 5000) << 40, rng.integers(0, 8, 5000),
@@ -300,7 +300,7 @@ def test_pixel_groups_are_the_distinct_rows():
                             rng.integers(0, 60000, (5000, 5))])
     wide[2500:] = wide[:2500]  # repeated rows
     for table in (rows, wide, rows[:0]):
-        keys, group = _group_rows(table)
+        keys, group = group_rows(table)
         expected_keys, expected_group = np.unique(table, axis=0, return_inverse=True)
         assert np.array_equal(keys, expected_keys)
         assert np.array_equal(group, expected_group.ravel())
