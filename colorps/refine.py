@@ -62,8 +62,9 @@ REFINE_BLOCK = 2 ** 18
 RADIUS_68 = float(np.sqrt(-2.0 * np.log(1.0 - 0.68)))
 #: A residual counts as a misfit only where its square exceeds 1 by more than
 #: this many of the noise's own standard deviations, sqrt(2 / dof): below it,
-#: the noise alone explains it (1: 80 % coverage on clean renders, 3: the
-#: misfits' radii shrink; 2 is measured in docs/benchmarks.md).
+#: the noise alone explains it. With 0 the noise's own spread counted as misfit
+#: (78 % of clean renders' errors within the radius); with 2, 66-70 %
+#: (docs/benchmarks.md).
 MISFIT_NOISE_SDS = 2.0
 
 
