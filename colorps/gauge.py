@@ -242,9 +242,9 @@ def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, floa
     circle and covers MIN_COVER of it.
 
     Through a lens (``camera``) the sphere's image is an ellipse, and a circle
-    fitted to the lit arc of it alone is off by pixels (a sphere 0.8 diameters
-    off the axis at a focal length of 6 diameters, lit by a dome: radius 57.95
-    for 60). The edge points' rays are fitted instead by the cone of rays
+    fitted to the lit arc of it alone is off by pixels (a sphere of radius 60 px
+    2.5 radii off the axis at a focal length of 8 radii: its centre 1.5 px and
+    its radius 0.8 px off). The edge points' rays are fitted instead by the cone of rays
     tangent to the sphere (:func:`colorps.geometry.silhouette_cone`, on the
     circle's inliers, then again on every edge point within
     RANSAC_RESIDUAL_PX of that cone), and the circle returned is the one that
