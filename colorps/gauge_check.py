@@ -307,8 +307,9 @@ def judge_finish(record: dict, first_file: Path) -> bool:
         said = (f"{seen}: if the scene's finish differs from the gauge's, every normal is "
                 f"biased alike. The way out, lights measured on the gauge, {why}: by hand, "
                 "colorps calibrate-lights 'GAUGE_IMAGES' --sphere ... --matte --out "
-                "lights.json, then reconstruct with --lights lights.json, which fits the "
-                "scene's own finish")
+                "lights.json (with this run's --camera, and its --gauge-albedo as --albedo), "
+                "then reconstruct with --lights lights.json, which fits the scene's own "
+                "finish")
     elif record["taken"]:
         said = (f"{seen}: its finish is not the scene's. Solved instead with the lights "
                 "measured on the gauge and the scene's own fitted finish (as calibrate-"
