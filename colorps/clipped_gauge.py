@@ -41,7 +41,7 @@ def rematch_near_clipped(capture: Capture, state, options: Options,
                          model_scale: float) -> list[tuple]:
     """Match again, without the gauge's clipped lights near their match, the
     matched pixels of ``state`` (matching's per-pixel state: ``row``,
-    ``quality`` on the run's scale, ``distance``, ``bands_used``, ``dropped``;
+    ``quality`` divided by ``model_scale``, ``distance``, ``bands_used``, ``dropped``;
     updated in place where the new match is better). Returns, per table used,
     (bands, table size, grid N, pixels, lights left out) for the run's record."""
     if capture.gauge_clipped is None or not capture.gauge_clipped.any():

@@ -138,11 +138,12 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
     others on the bands they have when those still fix a normal (bands x
     (m - 1) >= 2). In colour mode with ``band_weights`` each band is weighted
     by its signal-to-noise ratio (:func:`colorps.matching.weight_levels`).
-    The residuals are then divided by the capture's model scale, and, with
-    ``light_subsets``, pixels matched next to the gauge's clipped patches are
-    matched again without those lights
-    (:func:`colorps.clipped_gauge.rematch_near_clipped`) and pixels left far
-    outside the noise are re-matched without their most deviant light
+    With ``light_subsets``, pixels matched next to the gauge's clipped
+    patches are matched again without those lights
+    (:func:`colorps.clipped_gauge.rematch_near_clipped`, in
+    :func:`first_match`). The residuals are then divided by the capture's
+    model scale, and, with ``light_subsets``, pixels left far outside the
+    noise are re-matched without their most deviant light
     (:func:`_light_subsets`). ``origin`` is
     the (row, column) of the whole scene where ``mask`` begins (the model
     scale's pixels are counted from the whole scene's corner).
@@ -154,9 +155,6 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
         model_scale = measured_model_scale(state.quality[matched & sampled &
                                                          np.isfinite(state.quality)])
     state.quality[matched] /= model_scale
-    if options.light_subsets:
-        state.groups += [MatchGroup(*record) for record in
-                         rematch_near_clipped(capture, state, options, model_scale)]
     if options.light_subsets and capture.images >= MIN_LIGHTS + 1:
         if capture.images <= GREEDY_MAX_LIGHTS:
             _light_subsets(capture, state, options, model_scale)
@@ -176,6 +174,11 @@ def first_match(capture: Capture, mask: np.ndarray, options: Options,
     lights out) solve it, and matches the few it cannot on their own clipped
     lights (:func:`_match_clipped`). One table per distinct set of clipped
     lights made 103 tables on DiLiGenT Ball (7.4 of its 10.4 s).
+
+    With ``light_subsets``, pixels matched next to the gauge's clipped patches
+    are matched again here, without those lights
+    (:func:`colorps.clipped_gauge.rematch_near_clipped`): before the model scale
+    is measured on these residuals, which the gauge's clipping would inflate.
     """
     h, w = mask.shape
     m, n_bands = capture.images, capture.bands
@@ -199,6 +202,9 @@ def first_match(capture: Capture, mask: np.ndarray, options: Options,
     state.levels[ys, xs] = levels
     _match_groups(capture, state, (ys, xs, valid, levels, dropped), options, progress)
     state.quality[ys[refit], xs[refit]] = np.inf  # matched on clipped values: refit
+    if options.light_subsets:  # before the model scale, which a clipped gauge would inflate
+        state.groups += [MatchGroup(*record) for record in
+                         rematch_near_clipped(capture, state, options, 1.0)]
     return state
 
 
