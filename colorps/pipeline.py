@@ -63,7 +63,7 @@ from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock
 from .tiles import StackFiles, dask_client, reconstruct_tiled
-from .virtual import view_corrected, virtual_gauge, with_gauge_lights
+from .virtual import match_along_rays, virtual_gauge, with_gauge_lights
 
 __all__ = ["calibrate_lights_files", "integrate_file", "reconstruct_files"]
 
@@ -268,22 +268,17 @@ def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, m
 
     Without ``along_rays`` the stack goes to :func:`reconstruct` as its only
     reference, which lets it go once it has the observation vectors. With it
-    (``view``: the light file's lights, the virtual gauge, the camera) the
-    scene is matched once more, seen along each pixel's ray."""
+    (``view``: the light file's lights, the virtual gauge's finish and fits,
+    the camera) the scene is matched once more, seen along each pixel's ray
+    (:func:`virtual.match_along_rays`)."""
     step = overview_step(handed[0].shape[1:3])
     if not along_rays:
         preview = handed[0][:, ::step, ::step].mean(axis=0)  # what the overview draws
         return reconstruct(handed.pop(), gauge_stack, gauge, run, mask=mask,
                            progress=progress), preview
-    scene = handed.pop()
-    result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
-    if progress:
-        print("matching again, each pixel seen along its own ray (--camera and a "
-              "finish that depends on the view)", file=sys.stderr)
     light_set, virtual, camera = view
-    scene = view_corrected(scene, result, light_set, virtual[0], camera,
-                           run.options.clip_level)
-    result = reconstruct(scene, gauge_stack, gauge, run, mask=mask, progress=progress)
+    result, scene = match_along_rays(handed.pop(), gauge, run, light_set, virtual[0], camera,
+                                     mask=mask, progress=progress)
     return result, scene[:, ::step, ::step].mean(axis=0)
 
 

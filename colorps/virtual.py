@@ -37,7 +37,8 @@ from .options import Options
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 
-__all__ = ["fit_scene_brdf", "view_corrected", "virtual_gauge", "with_gauge_lights"]
+__all__ = ["fit_scene_brdf", "match_along_rays", "view_corrected", "virtual_gauge",
+           "with_gauge_lights"]
 
 # ---------------------------------------------------------------- tuning
 #: fit_scene_brdf fits this many times: at the normals of a Lambertian gauge,
@@ -138,14 +139,26 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
                                     clip_level=run.gauge_levels[0], camera=camera)
     virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
                                                   radius=radius, progress=progress)
-    result = reconstruct(scene, virtual.stack, virtual, settings, mask=mask,
-                         progress=progress)
-    if camera is not None and brdf.depends_on_view:
-        scene = view_corrected(scene, result, lights, brdf, camera,
-                               settings.options.clip_level)
-        result = reconstruct(scene, virtual.stack, virtual, settings, mask=mask,
-                             progress=progress)
+    result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
+                                 progress=progress)
     return result, settings, (brdf, fits), lights
+
+
+def match_along_rays(scene: np.ndarray, gauge: Gauge, run: Resolved, lights: Lights,
+                     brdf: BRDF, camera: Camera | None, *, mask=None, progress: bool = False):
+    """Reconstruct ``scene`` against a virtual ``gauge`` rendered with ``brdf``
+    under ``lights``; through a lens (``camera``) with a finish that depends on
+    the view, match once more with the scene seen along each pixel's ray
+    (:func:`view_corrected`, which changes ``scene`` in place). Returns (the
+    :class:`~colorps.Reconstruction`, the scene as last matched)."""
+    result = reconstruct(scene, gauge.stack, gauge, run, mask=mask, progress=progress)
+    if camera is None or not brdf.depends_on_view:
+        return result, scene
+    if progress:
+        print("matching again, each pixel seen along its own ray (--camera and a "
+              "finish that depends on the view)", file=sys.stderr)
+    scene = view_corrected(scene, result, lights, brdf, camera, run.options.clip_level)
+    return reconstruct(scene, gauge.stack, gauge, run, mask=mask, progress=progress), scene
 
 
 def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = None, *,
