@@ -54,6 +54,12 @@ class Camera:
                 raise InputError(f"camera: {name} must be a focal length > 0 in pixels, "
                                  f"got {value!r}")
 
+    @property
+    def focal(self) -> float:
+        """The mean focal length (fx + fy) / 2, pixels: the scale of angles at
+        the principal point."""
+        return (self.fx + self.fy) / 2.0
+
     def principal(self, shape: tuple[int, int]) -> tuple[float, float]:
         """(px, py) for an image of ``shape`` (H, W)."""
         h, w = shape

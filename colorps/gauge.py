@@ -378,7 +378,7 @@ def _edge_cone(points: np.ndarray, inliers: np.ndarray, camera: Camera,
     RANSAC_RESIDUAL_PX of that cone."""
     rays = camera.rays(points[:, 0], points[:, 1], shape)
     axis, alpha = silhouette_cone(rays[inliers])
-    focal = (camera.fx + camera.fy) / 2.0
+    focal = camera.focal
     off_px = np.abs(np.arccos(np.clip(rays @ axis, -1.0, 1.0)) - alpha) * focal
     near = off_px <= RANSAC_RESIDUAL_PX
     if near.sum() >= MIN_OUTLINE_POINTS:

@@ -98,7 +98,7 @@ def _pinhole_sphere_normals(x, y, cx, cy, radius, camera: Camera, shape):
     then intersected with it.
     """
     px, py = camera.principal(shape)
-    focal = (camera.fx + camera.fy) / 2.0
+    focal = camera.focal
     offset = np.array([(cx - px) * focal / camera.fx, (cy - py) * focal / camera.fy])
     distance = float(np.hypot(*offset))
     theta_c, alpha = _cone_of_circle(distance / focal, radius / focal)
@@ -157,7 +157,7 @@ def circle_of_cone(axis: np.ndarray, alpha: float, camera: Camera,
     :func:`sphere_normals` (the one fitted to its image ellipse: the ellipse's
     centre, the mean of its semi-axes), in pixels of an image of ``shape``."""
     px, py = camera.principal(shape)
-    focal = (camera.fx + camera.fy) / 2.0
+    focal = camera.focal
     theta = float(np.arccos(np.clip(-axis[2], -1.0, 1.0)))
     e, a, b = _ellipse_of_cone(theta, alpha)
     sideways = np.hypot(axis[0], axis[1])
