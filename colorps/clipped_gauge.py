@@ -37,13 +37,13 @@ NEAR_PX = 2
 MAX_GROUPS = 128
 
 
-def rematch_near_clipped(capture: Capture, state, options: Options,
-                         model_scale: float) -> list[tuple]:
+def rematch_near_clipped(capture: Capture, state, options: Options) -> list[tuple]:
     """Match again, without the gauge's clipped lights near their match, the
     matched pixels of ``state`` (matching's per-pixel state: ``row``,
-    ``quality`` divided by ``model_scale``, ``distance``, ``bands_used``, ``dropped``;
-    updated in place where the new match is better). Returns, per table used,
-    (bands, table size, grid N, pixels, lights left out) for the run's record."""
+    ``quality`` not yet divided by the model scale, ``distance``, ``bands_used``,
+    ``dropped``; updated in place where the new match is better). Returns, per
+    table used, (bands, table size, grid N, pixels, lights left out) for the
+    run's record."""
     if capture.gauge_clipped is None or not capture.gauge_clipped.any():
         return []
     m = capture.images
@@ -70,11 +70,10 @@ def rematch_near_clipped(capture: Capture, state, options: Options,
         result = capture.match(ys[pick], xs[pick], bands, (0,) * len(bands), kept,
                                grid_n=options.grid_n, threads=options.threads,
                                sample_size=AUTO_N_SAMPLE)
-        residual = result.residual / model_scale
-        better = (result.rows >= 0) & (residual < state.quality[ys[pick], xs[pick]])
+        better = (result.rows >= 0) & (result.residual < state.quality[ys[pick], xs[pick]])
         by, bx = ys[pick][better], xs[pick][better]
         state.row[by, bx] = result.rows[better]
-        state.quality[by, bx] = residual[better]
+        state.quality[by, bx] = result.residual[better]
         state.distance[by, bx] = result.distance[better]
         state.dropped[by, bx] = key[:-1].view(np.uint64)
         records.append((bands, result.table_size, result.grid_n, int(better.sum()), left_out))

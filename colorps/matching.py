@@ -204,7 +204,7 @@ def first_match(capture: Capture, mask: np.ndarray, options: Options,
     state.quality[ys[refit], xs[refit]] = np.inf  # matched on clipped values: refit
     if options.light_subsets:  # before the model scale, which a clipped gauge would inflate
         state.groups += [MatchGroup(*record) for record in
-                         rematch_near_clipped(capture, state, options, 1.0)]
+                         rematch_near_clipped(capture, state, options)]
     return state
 
 
