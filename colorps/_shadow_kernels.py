@@ -10,6 +10,9 @@ the best) with the masked signature distance
 
 s_k,L, g_k,L the unit vectors of band k's OVs over the pixel's lights L,
 computed from dot products without forming them: |s - g|^2 = 2 - 2 S.G / (|S| |G|).
+A gauge pixel's clipped lights leave L for that pair: its measurement under them
+is a lower bound, not a value (a gauge exposed for a darker scene clips where a
+light meets it head on).
 """
 
 from collections import namedtuple
@@ -24,35 +27,35 @@ from ._pixel_kernels import _variance
 #: The pixels to match: scene OVs ov (H, W, B, m) float32; pixel p is (y[p], x[p]),
 #: matched on the bands with bands[p, k] true, over the lights with keep[p, i] true.
 Pixels = namedtuple("Pixels", "ov y x bands keep")
-#: The gauge: its OVs ov (Hg, Wg, B, m) float32 and usable (Hg, Wg, B) bool.
-GaugeOVs = namedtuple("GaugeOVs", "ov usable")
+#: The gauge: its OVs ov (Hg, Wg, B, m) float32, usable (Hg, Wg, B) bool (but for
+#: clipped measurements) and clipped (Hg, Wg, words) uint64, the light masks of the
+#: images with a clipped measurement (colorps.light_masks).
+GaugeOVs = namedtuple("GaugeOVs", "ov usable clipped")
 #: A window of gauge pixels around centre (cy[p], cx[p]): rows cy + step * i and
 #: columns cx + step * j for |i|, |j| <= reach.
 Window = namedtuple("Window", "cy cx reach step")
 
 
+@njit(cache=True)
+def _lit(keep, clipped, p, gy, gx, i):
+    """Whether light i is in the pair's L: kept by pixel p, not clipped at (gy, gx)."""
+    return keep[p, i] and not (clipped[gy, gx, i >> 6] >> np.uint64(i & 63)) & np.uint64(1)
+
+
 @njit(cache=True, parallel=True)
-def masked_search(pixels, gauge, window, out_row, out_d2):
-    """The gauge pixel of each window with the least masked signature distance.
+def masked_search(pixels, gauge, window, min_lights, out_row, out_d2):
+    """The gauge pixel of each window with the least masked signature distance,
+    among those whose L holds at least ``min_lights`` lights.
 
     Writes its flat index (-1 when the window holds no usable gauge pixel) and
     D^2 (summed over the matched bands) into out_row and out_d2.
     """
     scene_ov, ys, xs, bands, keep = pixels
-    gauge_ov, usable = gauge
+    gauge_ov, usable, clipped = gauge
     cy, cx, reach, step = window
     hg, wg, n_bands, m = gauge_ov.shape
     for p in prange(ys.size):
         y, x = ys[p], xs[p]
-        scene_norm = np.zeros(n_bands)
-        for b in range(n_bands):
-            if bands[p, b]:
-                total = 0.0
-                for i in range(m):
-                    if keep[p, i]:
-                        v = np.float64(scene_ov[y, x, b, i])
-                        total += v * v
-                scene_norm[b] = np.sqrt(total)
         best, best_d2 = -1, np.inf
         for di in range(-reach, reach + 1):
             gy = cy[p] + step * di
@@ -62,24 +65,31 @@ def masked_search(pixels, gauge, window, out_row, out_d2):
                 gx = cx[p] + step * dj
                 if gx < 0 or gx >= wg:
                     continue
+                n_lights = 0
+                for i in range(m):
+                    if _lit(keep, clipped, p, gy, gx, i):
+                        n_lights += 1
+                if n_lights < min_lights:
+                    continue
                 d2 = 0.0
                 for b in range(n_bands):
                     if not bands[p, b]:
                         continue
-                    if not usable[gy, gx, b] or scene_norm[b] <= 0.0:
+                    if not usable[gy, gx, b]:
                         d2 = np.inf
                         break
-                    dot = 0.0
-                    gg = 0.0
+                    dot, gg, ss = 0.0, 0.0, 0.0
                     for i in range(m):
-                        if keep[p, i]:
+                        if _lit(keep, clipped, p, gy, gx, i):
                             g = np.float64(gauge_ov[gy, gx, b, i])
-                            dot += np.float64(scene_ov[y, x, b, i]) * g
+                            s = np.float64(scene_ov[y, x, b, i])
+                            dot += s * g
                             gg += g * g
-                    if gg <= 0.0:
+                            ss += s * s
+                    if gg <= 0.0 or ss <= 0.0:
                         d2 = np.inf
                         break
-                    d2 += 2.0 - 2.0 * dot / (scene_norm[b] * np.sqrt(gg))
+                    d2 += 2.0 - 2.0 * dot / np.sqrt(ss * gg)
                     if d2 >= best_d2:
                         break
                 if d2 < best_d2:
@@ -94,12 +104,13 @@ def masked_residuals(pixels, gauge, rows, resolution, noise, gauge_noise, floor2
     """Residual and signature distance of each pixel's match over its own lights.
 
     As colorps.residuals describes (and _pixel_kernels.group_residuals computes
-    for one light set), with L each pixel's kept lights; ``resolution``
+    for one light set), with L each pixel's kept lights but for its match's
+    clipped ones; ``resolution``
     (Hg * Wg, B) is h^2 over every light, and ``noise``, ``gauge_noise`` the
     scene's and gauge's models (read2, gain, pixel_kind, levels, table).
     """
     scene_ov, ys, xs, bands, keep = pixels
-    gauge_ov, _ = gauge
+    gauge_ov, _, clipped = gauge
     read2, gain, kind, levels, table = noise
     g_read2, g_gain, g_kind, g_levels, g_table = gauge_noise
     wg, n_bands, m = gauge_ov.shape[1], gauge_ov.shape[2], gauge_ov.shape[3]
@@ -108,7 +119,7 @@ def masked_residuals(pixels, gauge, rows, resolution, noise, gauge_noise, floor2
         qy, qx = q // wg, q % wg
         n_lights = 0
         for i in range(m):
-            if keep[p, i]:
+            if _lit(keep, clipped, p, qy, qx, i):
                 n_lights += 1
         ratio_sum, d_sum, used = 0.0, 0.0, 0
         for b in range(n_bands):
@@ -116,7 +127,7 @@ def masked_residuals(pixels, gauge, rows, resolution, noise, gauge_noise, floor2
                 continue
             s2, g2, sg, var_s, var_g = 0.0, 0.0, 0.0, 0.0, 0.0
             for i in range(m):
-                if keep[p, i]:
+                if _lit(keep, clipped, p, qy, qx, i):
                     s = np.float64(scene_ov[y, x, b, i])
                     g = np.float64(gauge_ov[qy, qx, b, i])
                     s2 += s * s

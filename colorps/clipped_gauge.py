@@ -13,7 +13,8 @@ NEAR_PX of gauge pixels with clipped lights again without those lights, and
 keeps that match where it explains the pixel better (a lower residual): one
 table per set of lights left out, MAX_GROUPS of them at most. Pixels already
 without lights of their own (clipped in the scene) are left to the per-pixel
-fit of :mod:`colorps.shadows`. Those lights join the pixel's dropped ones
+fit of :mod:`colorps.shadows`, which leaves out each gauge pixel's clipped
+lights too. Those lights join the pixel's dropped ones
 (``lights.exr``). A gauge with nothing clipped costs nothing.
 """
 

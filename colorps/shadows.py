@@ -20,6 +20,11 @@ found by a trimmed fit that needs no table:
    noise units (:func:`colorps._shadow_kernels.masked_residuals`, as
    :mod:`colorps.residuals` defines the residual).
 
+A gauge pixel's clipped lights (a gauge exposed for a darker scene) leave each
+pair's lights in 2 and 4, and the match's clipped ones the pixel's kept lights:
+a pixel in shadow under many lights whose normal lies in a clipped patch is
+fitted there, not refused.
+
 A pixel takes the new match when it explains it better than the one it had
 (a lower residual); on the table's rim only when every light it drops as
 darker was predicted bright (a rim match may stand for a normal beyond the
@@ -96,7 +101,7 @@ def solve_shadowed(capture: Capture, state, limit: float, model_scale: float) ->
     ys, xs = np.nonzero((state.row >= 0) & (state.quality > limit))
     if not len(ys):
         return 0
-    interior = _interior(capture.gauge_valid)  # one table for every chunk
+    interior = _interior(_usable_gauge(capture))  # one table for every chunk
     replaced = 0
     for a in range(0, len(ys), CHUNK_PIXELS):
         replaced += _solve_chunk(capture, state, ys[a:a + CHUNK_PIXELS],
@@ -123,7 +128,7 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float,
     brightness = (np.divide(ov, norm, out=np.zeros_like(ov), where=norm > 0)
                   * bands[..., None]).sum(axis=1)  # (P, m)
     lit = (brightness >= DARK_FRACTION * brightness.max(axis=1, keepdims=True)) & ~clipped
-    gauge = _shadow_kernels.GaugeOVs(capture.gauge_ov, np.ascontiguousarray(capture.gauge_valid))
+    gauge = _gauge_ovs(capture)
     hg, wg = capture.gauge_ov.shape[:2]
     centre = (np.full(len(ys), hg // 2), np.full(len(ys), wg // 2))
     scanned = _search(capture, ys, xs, bands, lit, gauge, centre,
@@ -163,11 +168,37 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float,
     return int(better.sum())
 
 
-def _interior(gauge_valid: np.ndarray) -> np.ndarray:
+def _interior(usable: np.ndarray) -> np.ndarray:
     """(Hg, Wg): gauge pixels whose 3 x 3 neighbourhood has every band usable."""
     from scipy.ndimage import binary_erosion
 
-    return binary_erosion(gauge_valid.all(axis=-1), np.ones((3, 3), bool))
+    return binary_erosion(usable.all(axis=-1), np.ones((3, 3), bool))
+
+
+def _usable_gauge(capture: Capture) -> np.ndarray:
+    """(Hg, Wg, B) gauge bands usable over the lights that leave out their
+    pixel's clipped ones."""
+    if capture.gauge_unclipped is None:
+        return np.ascontiguousarray(capture.gauge_valid)
+    return np.ascontiguousarray(capture.gauge_valid | capture.gauge_unclipped)
+
+
+def _gauge_ovs(capture: Capture) -> _shadow_kernels.GaugeOVs:
+    """The gauge as the kernels take it: a pair's lights leave out the gauge
+    pixel's clipped ones."""
+    clipped = capture.gauge_clipped
+    if clipped is None:
+        clipped = light_masks.empty(capture.gauge_ov.shape[:2], capture.images)
+    return _shadow_kernels.GaugeOVs(capture.gauge_ov, _usable_gauge(capture),
+                                    np.ascontiguousarray(clipped))
+
+
+def _unclipped_at(capture: Capture, keep: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(P, m) ``keep`` but for the lights clipped at each pixel's matched gauge pixel."""
+    if capture.gauge_clipped is None:
+        return keep
+    masks = capture.gauge_clipped.reshape(-1, capture.gauge_clipped.shape[-1])
+    return keep & ~light_masks.to_bool(masks[np.maximum(rows, 0)], capture.images)
 
 
 def _trimmed_fit(capture, ys, xs, ov, bands, clipped, gauge, keep, rows, model_scale):
@@ -179,6 +210,7 @@ def _trimmed_fit(capture, ys, xs, ov, bands, clipped, gauge, keep, rows, model_s
                        COARSE_STEP, 1)
         if round_ < ROUNDS:
             keep = _inliers(capture, ov, bands, keep, rows, model_scale) & ~clipped
+    keep = _unclipped_at(capture, keep, rows)
     z = _light_z(capture, ov, _matched(capture, rows), bands, keep, rows)
     quality, distance = _residuals(capture, ys, xs, bands, keep, gauge, rows)
     return rows, keep, z, quality / model_scale, distance
@@ -221,12 +253,14 @@ def _inliers(capture, ov, bands, keep, rows, model_scale) -> np.ndarray:
     INLIER_Z noise units (times the model scale), or a disagreement under
     MINOR_FRACTION of the pixel's brightest predicted measurement (:func:`_shares`;
     a cast shadow or a highlight changes a measurement by much more, a light near
-    grazing by less)."""
+    grazing by less). Lights of ``keep`` clipped at the match stay: it says
+    nothing of them."""
     g = _matched(capture, rows)
-    z = _light_z(capture, ov, g, bands, keep, rows)
-    predicted, change = _shares(ov, g, bands, keep)
+    pair = _unclipped_at(capture, keep, rows)
+    z = _light_z(capture, ov, g, bands, pair, rows)
+    predicted, change = _shares(ov, g, bands, pair)
     minor = change < MINOR_FRACTION * predicted.max(axis=1, keepdims=True)
-    return (np.abs(z) <= INLIER_Z * model_scale) | minor
+    return (np.abs(z) <= INLIER_Z * model_scale) | minor | (keep & ~pair)
 
 
 def _search(capture, ys, xs, bands, keep, gauge, centre, reach: int, step: int) -> np.ndarray:
@@ -238,7 +272,7 @@ def _search(capture, ys, xs, bands, keep, gauge, centre, reach: int, step: int) 
                                     np.asarray(centre[1], np.int64), int(reach), int(step))
     rows = np.empty(len(ys), dtype=np.int64)
     d2 = np.empty(len(ys))
-    _shadow_kernels.masked_search(pixels, gauge, window, rows, d2)
+    _shadow_kernels.masked_search(pixels, gauge, window, MIN_LIGHTS, rows, d2)
     return rows
 
 

@@ -350,8 +350,10 @@ def test_a_gauge_clipped_where_lights_meet_it_head_on(monkeypatch):
     and the refinement had no models there either: the scene's (unclipped)
     pixels matched the nearest entry outside and kept its normal (2.1 degrees
     mean). With models fitted but for clipped measurements (0.25) and each pixel
-    matched again without the gauge's clipped lights near its match, the normals
-    come out as with a gauge that clips nothing (0.10)."""
+    matched again without the gauge's clipped lights near its match, or fitted on
+    its own lights without the clipped ones of the gauge pixels it scans
+    (colorps.shadows), the normals come out as with a gauge that clips nothing
+    (0.11 against 0.10)."""
     import importlib
 
     from colorps.shapes import dome_lights, folds_surface
@@ -376,8 +378,48 @@ def test_a_gauge_clipped_where_lights_meet_it_head_on(monkeypatch):
     reference = errors(0.95 * rendered)  # the same gauge, nothing clipped
     rematched = errors(clipped)
     matching = importlib.import_module("colorps.matching")
+    shadows = importlib.import_module("colorps.shadows")
     monkeypatch.setattr(matching, "rematch_near_clipped", lambda *args, **kwargs: [])
+    monkeypatch.setattr(shadows, "_usable_gauge", lambda capture: capture.gauge_valid)
     first = errors(clipped)
     assert rematched.mean() < 1.25 * reference.mean()
     assert rematched.mean() < 0.6 * first.mean()
     assert np.percentile(rematched, 95) < 1.25 * np.percentile(reference, 95)
+
+
+def test_a_clipped_gauge_and_cast_shadows_under_many_lights(monkeypatch):
+    """Pixels in the cast shadow of many lights are fitted on their own lights
+    (colorps.shadows); where their normal lies in a clipped patch of the gauge,
+    that fit leaves out the gauge pixel's clipped lights too. Scanning only the
+    gauge pixels clipped under no light, it found none near the true normal and
+    refused the pixel ("no good match"); now every pixel is solved, as with a
+    gauge that clips nothing."""
+    import importlib
+
+    from colorps.shapes import dome_lights, folds_surface
+
+    lights = dome_lights(32)
+    scene = folds_surface(100)
+    stack = synth.render(scene, lights, noise=0.002, seed=1, cast_shadows=True)
+    rendered = synth.render(synth.sphere_surface(90, 40), lights, noise=0.002, seed=2)
+    gauge = Gauge.from_sphere((90, 90), 44.5, 44.5, 40)
+
+    def run(gauge_stack):
+        with warnings.catch_warnings():  # the clipped gauge's exposure warning
+            warnings.simplefilter("ignore", GaugeWarning)
+            result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, clip_level=1.0)
+        errors = np.where(result.solved, angular_error(result.normals, scene.normals), 90.0)
+        return errors[scene.mask], result
+
+    clipped = np.minimum(1.015 * rendered, 1.0)
+    assert (clipped[:, gauge.mask] >= 1.0).any(axis=(0, 2)).mean() > 0.5
+    reference, _ = run(0.95 * rendered)  # the same gauge, nothing clipped
+    fitted, _ = run(clipped)
+    assert (reference < 90).all() and (fitted < 90).all()
+    assert fitted.mean() < 1.25 * reference.mean()  # 0.12 against 0.11 degrees
+
+    shadows = importlib.import_module("colorps.shadows")  # as it was: no clipped pixel scanned
+    monkeypatch.setattr(shadows, "_usable_gauge", lambda capture: capture.gauge_valid)
+    monkeypatch.setattr(shadows, "_unclipped_at", lambda capture, keep, rows: keep)
+    before, _ = run(clipped)
+    assert (before == 90).mean() > 0.005  # 1.9 % refused

@@ -4,8 +4,9 @@ per-pixel residual against the table's, and whole captures of deep folds."""
 import numpy as np
 import pytest
 
-from colorps import Gauge, angular_error, reconstruct, synth
+from colorps import Gauge, angular_error, light_masks, reconstruct, synth
 from colorps import _shadow_kernels as kernels
+from colorps._config import MIN_LIGHTS
 from colorps.noise import NoiseModel
 from colorps.residuals import MODEL_FLOOR
 from colorps.shapes import dome_lights, folds_surface
@@ -24,7 +25,9 @@ def small_gauge(lights, radius=20, noise=0.0, seed=2):
 @pytest.mark.parametrize("seed", range(4))
 def test_masked_search_finds_the_brute_force_nearest(seed):
     """Over a window that covers the gauge, the kernel's match is the exact
-    minimiser of the masked signature distance (float64 brute force)."""
+    minimiser of the masked signature distance (float64 brute force), each pair
+    over the pixel's lights but for the gauge pixel's clipped ones, and on at
+    least MIN_LIGHTS of them."""
     rng = np.random.default_rng(seed)
     lights = dome_lights(12)
     gauge_stack, gauge = small_gauge(lights)
@@ -43,18 +46,25 @@ def test_masked_search_finds_the_brute_force_nearest(seed):
     pixels = kernels.Pixels(scene[None], np.zeros(200, np.int64), np.arange(200),
                             bands, keep)
     window = kernels.Window(np.full(200, hg // 2), np.full(200, wg // 2), max(hg, wg), 1)
+    # A third of the gauge pixels clipped under one to nine lights.
+    clipped_bool = (rng.random((hg, wg, 12)) < rng.uniform(0.05, 0.8, (hg, wg, 1))) & \
+        (rng.random((hg, wg, 1)) < 0.33)
+    clipped = light_masks.from_bool(clipped_bool)
     rows, d2 = np.empty(200, np.int64), np.empty(200)
-    kernels.masked_search(pixels, kernels.GaugeOVs(ov, usable), window, rows, d2)
+    kernels.masked_search(pixels, kernels.GaugeOVs(ov, usable, clipped), window, MIN_LIGHTS,
+                          rows, d2)
     g = ov.reshape(-1, 3, 12).astype(np.float64)
     for p in range(200):
-        s = scene[p].astype(np.float64) * keep[p]
-        gk = g * keep[p]
-        sn = s / np.linalg.norm(s, axis=-1, keepdims=True)
-        gn_norm = np.linalg.norm(gk, axis=-1, keepdims=True)
+        lit = keep[p] & ~clipped_bool.reshape(-1, 12)  # (Q, 12)
+        s = scene[p].astype(np.float64)[None] * lit[:, None, :]
+        gk = g * lit[:, None, :]
         with np.errstate(invalid="ignore", divide="ignore"):
+            sn = s / np.linalg.norm(s, axis=-1, keepdims=True)
+            gn_norm = np.linalg.norm(gk, axis=-1, keepdims=True)
             gn = gk / gn_norm
-        dist = ((sn[None] - gn) ** 2).sum(axis=-1)  # (Q, 3)
-        ok = usable.reshape(-1, 3)[:, bands[p]].all(axis=1) & (gn_norm[..., 0] > 0).all(axis=1)
+            dist = ((sn - gn) ** 2).sum(axis=-1)  # (Q, 3)
+        ok = usable.reshape(-1, 3)[:, bands[p]].all(axis=1) & \
+            (gn_norm[..., 0] > 0).all(axis=1) & (lit.sum(axis=1) >= MIN_LIGHTS)
         total = np.where(ok, dist[:, bands[p]].sum(axis=1), np.inf)
         assert total[rows[p]] == pytest.approx(total.min(), abs=1e-9)
         assert d2[p] == pytest.approx(total.min(), abs=1e-9)
@@ -76,7 +86,9 @@ def test_masked_residuals_over_every_light_are_the_table_residuals():
                             np.ones((len(ys), 3), bool), np.ones((len(ys), 10), bool))
     q, d = np.empty(len(ys), np.float32), np.empty(len(ys), np.float32)
     resolution = capture.light_set(every).resolution_at(group.rows)
-    kernels.masked_residuals(pixels, kernels.GaugeOVs(capture.gauge_ov, capture.gauge_valid),
+    no_clipping = light_masks.empty(capture.gauge_ov.shape[:2], 10)
+    kernels.masked_residuals(pixels, kernels.GaugeOVs(capture.gauge_ov, capture.gauge_valid,
+                                                      no_clipping),
                              group.rows, resolution, model.kernel_args(), model.kernel_args(),
                              MODEL_FLOOR ** 2, q, d)
     np.testing.assert_allclose(q, group.residual, rtol=1e-4)
