@@ -15,7 +15,8 @@ in the next row, without it); a white GGX coat (alpha 0.3, the microfacet lobe
 of physically based renderers) of Fresnel reflectance 0.5 on scene and gauge,
 and a varnish (0.04) on the scene only; an 8-bit gauge exposed 1.01 times
 brighter and clipped at the top code (where lights meet it head on), read
-with that clip level. ``--only TEXT`` runs the sets whose names hold it.
+with that clip level; a small gauge (radius 20 px, 8-bit). ``--only TEXT`` runs
+the sets whose names hold it.
 
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
@@ -70,13 +71,14 @@ def quantise_srgb(stack: np.ndarray) -> np.ndarray:
 
 def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: bool, *,
              interreflection: float = 0.0, perspective: bool = False, gloss: float = 0.0,
-             gauge_gloss: float = 0.0, gauge_exposure: float | None = None):
+             gauge_gloss: float = 0.0, gauge_exposure: float | None = None,
+             gauge_radius: float | None = None):
     lights = dome_lights(m)
     scene = folds_surface(size)
     stack = synth.render(scene, lights, brdf=scene_brdf, roughness=0.3, noise=NOISE, seed=1,
                          cast_shadows=True, interreflection=interreflection,
                          gloss=Gloss(gloss, "ggx", alpha=GGX_ALPHA))
-    radius = 0.3 * size
+    radius = 0.3 * size if gauge_radius is None else gauge_radius
     gauge_size = int(2 * radius + 10)
     centre = (gauge_size - 1) / 2
     camera = None
@@ -164,7 +166,9 @@ def main(argv=None) -> None:
             ("32 lights, varnished (GGX coat F0 0.04) scene, matte gauge", 32, "lambert",
              "lambert", False, {"gloss": 0.04}),
             ("32 lights, 8-bit sRGB, gauge exposed 1.01x and clipped", 32, "lambert", "lambert",
-             True, {"gauge_exposure": 1.01})]
+             True, {"gauge_exposure": 1.01}),
+            ("32 lights, 8-bit sRGB, small gauge (radius 20 px)", 32, "lambert", "lambert", True,
+             {"gauge_radius": 20})]
     for name, m, scene_brdf, gauge_brdf, eight_bit, extra in sets:
         if args.only not in name:
             continue
