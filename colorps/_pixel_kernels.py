@@ -3,9 +3,11 @@
 The API is :func:`colorps.compute_signatures` and :func:`colorps.reconstruct`;
 these kernels do their whole-image work in one parallel pass over pixels, with
 no image-sized temporaries. Conventions are those of :mod:`colorps.signatures`:
-a measurement is **invalid** when negative or not finite, **clipped** when at
-or above the clip level, and a band's OV is **dark** when its Euclidean norm
-is at most ``min_norm``.
+a measurement is **invalid** when not finite, or negative by more than noise
+around a dark value explains (below ``-negative_fraction`` times its channel's
+brightest measurement at the pixel), **clipped** when at or above the clip
+level, and a band's OV is **dark** when its Euclidean norm is at most
+``min_norm``.
 """
 
 import numpy as np
@@ -13,13 +15,14 @@ from numba import njit, prange
 
 
 @njit(cache=True, inline="always")
-def _invalid(v):
-    return not (v >= 0.0) or not np.isfinite(v)
+def _invalid(v, floor):
+    """Not finite, or below ``floor`` (see the module)."""
+    return not (v >= floor) or not np.isfinite(v)
 
 
 @njit(cache=True, parallel=True)
 def observation_vectors(stack, first_row, first_col, mixing, clip_level, min_norm,
-                        ov, norms, band_invalid, band_clipped, band_dark, clipped_lights,
+                        negative_fraction, ov, norms, band_invalid, band_clipped, band_dark, clipped_lights,
                         invalid_lights):
     """Fill the observation vectors of every pixel, their norms and their flags.
 
@@ -37,6 +40,10 @@ def observation_vectors(stack, first_row, first_col, mixing, clip_level, min_nor
         non-zero weight; their invalid or clipped measurements are the band's.
     clip_level, min_norm : float
         ``np.inf`` for no clipping.
+    negative_fraction : float
+        A measurement below ``-negative_fraction`` times its channel's
+        brightest at the pixel is invalid; smaller negative values are kept as
+        measured.
 
     Outputs (written in place), of the box's h x w pixels
     -----------------------------------------------------
@@ -51,7 +58,18 @@ def observation_vectors(stack, first_row, first_col, mixing, clip_level, min_nor
     h, w = ov.shape[0], ov.shape[1]
     n_bands = mixing.shape[0]
     for y in prange(h):
+        values = np.empty((m, c), dtype=np.float32)  # the pixel's, read once
+        floor = np.empty(c, dtype=np.float32)
         for x in range(w):
+            floor[:] = 0.0
+            for i in range(m):
+                for k in range(c):
+                    v = stack[i, first_row + y, first_col + x, k]
+                    values[i, k] = v
+                    if v > floor[k] and np.isfinite(v):
+                        floor[k] = v  # the channel's brightest, for now
+            for k in range(c):
+                floor[k] *= -negative_fraction
             for word in range(clipped_lights.shape[2]):
                 clipped_lights[y, x, word] = 0
                 invalid_lights[y, x, word] = 0
@@ -65,11 +83,11 @@ def observation_vectors(stack, first_row, first_col, mixing, clip_level, min_nor
                         weight = mixing[b, k]
                         if weight == 0.0:
                             continue
-                        v = stack[i, first_row + y, first_col + x, k]
+                        v = values[i, k]
                         if v >= clip_level:  # +Inf too: clipped and invalid
                             clipped = True
                             clipped_lights[y, x, i >> 6] |= np.uint64(1) << np.uint64(i & 63)
-                        if _invalid(v):
+                        if _invalid(v, floor[k]):
                             invalid = True
                             invalid_lights[y, x, i >> 6] |= np.uint64(1) << np.uint64(i & 63)
                             continue
@@ -155,7 +173,7 @@ def albedo(values, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albe
                 g = np.float64(top * (1 - fy) + bottom * fy)
                 s = np.float64(values[ys[p], xs[p], k, i])
                 gauge_energy += g * g
-                if _invalid(s) or s >= clip_level or excluded[p, i]:
+                if not np.isfinite(s) or s >= clip_level or excluded[p, i]:
                     all_usable = False
                     continue
                 scene_energy += s * s

@@ -7,7 +7,7 @@ code   member           name              meaning
 1      BACKGROUND       "background"      outside the scene mask
 2      TOO_DARK         "too dark"        an OV norm at or below the dark threshold
 3      CLIPPED          "clipped"         a measurement at or above the clip level
-4      INVALID_VALUE    "invalid value"   a NaN, Inf or negative measurement
+4      INVALID_VALUE    "invalid value"   a NaN, Inf or far negative measurement
 5      NO_GOOD_MATCH    "no good match"   no light subset explains it within the noise
 6      SOLVED_FROM_...  "solved from a    solved from the remaining lights after
        LIGHT_SUBSET     light subset"     dropping one or a few (shadow, highlight)

@@ -106,7 +106,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     still fix a normal (bands x (m - 1) >= 2). Every band then gets its albedo
     from the found normal: eq. 6 when all its measurements are usable, else the
     least-squares scale over its usable (unclipped) measurements, leaving out
-    the lights with an invalid (NaN, Inf, negative) measurement in any band.
+    the lights with an invalid (NaN, Inf, far below zero) measurement in any band.
 
     In colour mode the albedo is taken from the observation vectors, and
     ``scene`` is not referenced past them: a caller that holds no reference of

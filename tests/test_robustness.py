@@ -372,3 +372,30 @@ def test_interrupted_run_leaves_no_partial_output(tmp_path):
                                                                       files)
             shutil.rmtree(out)
     assert 130 in results, f"colorps never caught the interrupt ({results}); make it longer"
+
+
+def test_zero_mean_noise_with_negative_values_is_solved_whole():
+    """Noise added to a render and not cut at zero (or a raw conversion with the
+    black level taken off) leaves half the measurements of unlit pixels below 0.
+    Taken as invalid they had refused 85 % of a folds capture under 32 lights
+    (and 65 % of its gauge); kept as measured, every pixel is solved, as well as
+    with the same noise cut at zero."""
+    from colorps import Gauge, angular_error, synth
+    from colorps.shapes import dome_lights, folds_surface
+
+    lights = dome_lights(32)
+    scene = folds_surface(96)
+    stack = synth.render(scene, lights, cast_shadows=True)
+    gauge_stack = synth.render(synth.sphere_surface(90, 40), lights)
+    gauge = Gauge.from_sphere((90, 90), 44.5, 44.5, 40)
+    rng = np.random.default_rng(0)
+    noisy = stack + rng.normal(0, 0.003, stack.shape).astype(np.float32)
+    noisy_gauge = gauge_stack + rng.normal(0, 0.003, gauge_stack.shape).astype(np.float32)
+    assert (noisy[:, scene.mask] < 0).mean() > 0.05
+    errors = []
+    for scene_stack, gauge_images in ((noisy, noisy_gauge),
+                                      (np.maximum(noisy, 0), np.maximum(noisy_gauge, 0))):
+        result = reconstruct(scene_stack, gauge_images, gauge, mask=scene.mask)
+        assert result.solved[scene.mask].all()
+        errors.append(angular_error(result.normals[scene.mask], scene.normals[scene.mask]))
+    assert errors[0].mean() < 1.1 * errors[1].mean() and np.median(errors[0]) < 0.2

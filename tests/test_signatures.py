@@ -2,7 +2,8 @@ import colour
 import numpy as np
 import pytest
 
-from colorps import InputError, compute_signatures, luminance
+from colorps import InputError, compute_signatures, light_masks, luminance
+from colorps.signatures import NEGATIVE_NOISE
 
 
 def test_colour_layout_is_band_major(rng):
@@ -55,6 +56,24 @@ def test_clipped_and_negative_measurements(rng):
     assert green.valid.all()
     with pytest.raises(InputError, match="clip_level"):
         compute_signatures(stack, clip_level=0)
+
+
+def test_negative_noise_around_a_dark_measurement_is_kept(rng):
+    """Linear files with the black level taken off, and renders with noise added,
+    hold small negative values where a light does not reach: they are data
+    (kept as measured), not invalid; a value far below zero is not noise."""
+    stack = rng.uniform(0.2, 0.8, (6, 3, 3, 3)).astype(np.float32)
+    stack[2, 0, 0, 0] = -0.01                            # noise around a shadow
+    stack[3, 0, 0, 1] = -0.9 * NEGATIVE_NOISE * np.delete(stack[:, 0, 0, 1], 3).max()
+    stack[4, 1, 1, 2] = -1.1 * NEGATIVE_NOISE * stack[:, 1, 1, 2].max()  # beyond
+    sig = compute_signatures(stack, "colour")
+    assert sig.band_valid[0, 0].all() and sig.ov[0, 0, 0, 2] == np.float32(-0.01)
+    assert sig.band_invalid_value[1, 1].tolist() == [False, False, True]
+    assert light_masks.to_bool(sig.invalid_lights[1, 1], 6).tolist() == \
+        [False, False, False, False, True, False]
+    assert sig.valid.sum() == 8
+    np.testing.assert_allclose(np.linalg.norm(sig.signatures[0, 0].reshape(3, 6), axis=1), 1,
+                               rtol=1e-6)
 
 
 def test_a_box_is_read_in_place_as_its_slice_would_be(rng):
