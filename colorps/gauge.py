@@ -4,12 +4,15 @@ Sphere geometry under orthographic view, in pixel coordinates (x = column,
 y = row, pixel centres at integers), centre (cx, cy) and radius r in pixels:
 see :func:`colorps.geometry.sphere_normals`. Only pixels safely inside
 the rim are used: at the rim the normal changes fastest per pixel and pixels
-mix sphere and background.
+mix sphere and background. How far inside is measured on the gauge's images
+where they are at hand (:func:`rim_margin`): a small gauge shows its steepest
+normals only in its outermost pixels.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,7 +20,7 @@ from .camera import Camera
 from .errors import GaugeError, InputError
 from .geometry import circle_of_cone, silhouette_cone, sphere_normals
 
-__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo"]
+__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo", "rim_margin"]
 
 #: Albedo of a gauge when none is given: a white gauge gives absolute albedo.
 DEFAULT_ALBEDO = 1.0
@@ -29,10 +32,19 @@ DEFAULT_VIRTUAL_RADIUS = 100.0
 #: Smallest usable sphere radius (pixels).
 MIN_RADIUS = 8.0
 #: Pixels closer than max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION r) to the rim are
-#: left out of the table: the normal turns fastest there and pixels mix sphere
-#: and background.
+#: left out of the table when the edge is not measured (Gauge.from_sphere's
+#: default): the normal turns fastest there and pixels mix sphere and background.
 RIM_MARGIN_PX = 2.0
 RIM_MARGIN_FRACTION = 0.02
+#: Measured on the images (:func:`rim_margin`), the margin is at least
+#: RIM_MARGIN_MIN_PX (a pixel whose centre lies 1 px inside the edge lies wholly
+#: inside: its half diagonal is 0.71 px) and RIM_MARGIN_FRACTION r; where the
+#: background outside the edge is brighter than DARK_BACKGROUND of the sphere's
+#: edge, the edge's blur too (from the edge in to the ramp's shoulder): mixing with
+#: a bright background adds a foreign signature, while mixing with a dark one
+#: only scales the observation vector, which its normalisation takes out.
+RIM_MARGIN_MIN_PX = 1.0
+DARK_BACKGROUND = 0.05
 #: find_sphere: the sphere is segmented at SEGMENT_LEVEL of the bright level
 #: (the BRIGHT_PERCENTILE of the brightest-of-all-images picture); a second
 #: region of SECOND_REGION of the largest's size makes the gauge ambiguous; the
@@ -95,6 +107,8 @@ class Gauge:
         Sphere geometry when the gauge is a sphere.
     stack : (m, H, W, c) ndarray or None
         The gauge's images when colorps rendered them (:meth:`virtual`).
+    rim_margin : float or None
+        A sphere's pixels closer than this to its rim (pixels) are left out.
     """
 
     normals: np.ndarray
@@ -102,6 +116,7 @@ class Gauge:
     albedo: object = DEFAULT_ALBEDO
     sphere: tuple[float, float, float] | None = None
     stack: np.ndarray | None = None
+    rim_margin: float | None = None
 
     def __post_init__(self):
         normals = np.asarray(self.normals, dtype=np.float32)
@@ -130,7 +145,9 @@ class Gauge:
         albedo : float or (c,) array_like
         rim_margin : float, optional
             Pixels closer than this to the rim are left out (pixels; default
-            ``max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * radius)``).
+            ``max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * radius)``, what a gauge
+            needs whose edge has not been measured; ``colorps reconstruct``
+            passes :func:`rim_margin` of the gauge's images).
         camera : Camera, optional
             The pinhole camera the gauge images were taken with, in their
             pixel grid (default: orthographic): the normals are then those
@@ -160,7 +177,8 @@ class Gauge:
         normals, rho = sphere_normals((h, w), cx, cy, radius, camera)
         mask = rho <= 1.0 - margin / radius
         normals[~mask] = 0.0
-        return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)))
+        return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)),
+                   rim_margin=float(margin))
 
 
     @classmethod
@@ -277,8 +295,7 @@ def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, floa
     if min(data.shape[1:3]) < 2 * MIN_RADIUS:
         raise GaugeError(f"sphere auto: the {data.shape[2]}x{data.shape[1]} gauge images "
                          f"are too small to hold a sphere of {MIN_RADIUS:g}+ px radius")
-    brightest = np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0).max(axis=(0, 3))
-    bright = np.percentile(brightest, BRIGHT_PERCENTILE)
+    brightest, bright = _brightest(data)
     if not bright > 0:
         raise GaugeError("sphere auto: the gauge images are black; cannot find the sphere")
     level = SEGMENT_LEVEL * bright
@@ -319,6 +336,65 @@ def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, floa
     return _edge_circle(brightest, (cx, cy, r), bright, camera)
 
 
+def rim_margin(stack, circle: tuple[float, float, float], camera: Camera | None = None
+               ) -> float:
+    """How far inside its rim a photographed sphere's pixels are usable (pixels).
+
+    Measured on the brightest picture of the images, along the lit radii of
+    ``circle`` as :func:`find_sphere` finds the edge: max(RIM_MARGIN_MIN_PX,
+    RIM_MARGIN_FRACTION r), or the edge's blur (from the edge in to the ramp's
+    shoulder) where the background is brighter than DARK_BACKGROUND of the
+    sphere; plus how far ``circle`` reaches past the edge found (not measured
+    through a lens, ``camera``, whose sphere's image is an ellipse). Where too
+    few radii are lit: max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION r), what
+    :meth:`Gauge.from_sphere` takes by default.
+
+    Parameters
+    ----------
+    stack : (m, H, W, c) array_like
+        Linear gauge images.
+    circle : (cx, cy, r)
+        The sphere's silhouette, pixels.
+    camera : Camera, optional
+
+    Returns
+    -------
+    float
+        Pixels; pass it as ``Gauge.from_sphere(..., rim_margin=...)``.
+
+    Examples
+    --------
+    >>> from colorps import synth
+    >>> from colorps.gauge import rim_margin
+    >>> from colorps.shapes import dome_lights
+    >>> stack = synth.render(synth.sphere_surface(50, 20), dome_lights(8))
+    >>> rim_margin(stack, (24.5, 24.5, 20.0))  # a sharp edge on a dark background
+    1.0
+    """
+    data = np.asarray(stack, dtype=np.float32)
+    if data.ndim == 3:
+        data = data[..., None]
+    cx, cy, r = (float(v) for v in circle)
+    unmeasured = max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * r)
+    brightest, bright = _brightest(data)
+    if not bright > 0:
+        return unmeasured
+    edges = _edge_points(brightest, (cx, cy, r), bright)
+    if len(edges.radius) < MIN_OUTLINE_POINTS:
+        return unmeasured
+    blur = float(np.median(edges.radius - edges.shoulder)) \
+        if np.median(edges.outside) > DARK_BACKGROUND else 0.0
+    past = 0.0 if camera is not None else max(0.0, r - float(np.median(edges.radius)))
+    return max(RIM_MARGIN_MIN_PX, RIM_MARGIN_FRACTION * r, blur) + past
+
+
+def _brightest(data: np.ndarray) -> tuple[np.ndarray, float]:
+    """The brightest value of every pixel over the (m, H, W, c) images, and its
+    BRIGHT_PERCENTILE (the bright level)."""
+    brightest = np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0).max(axis=(0, 3))
+    return brightest, float(np.percentile(brightest, BRIGHT_PERCENTILE))
+
+
 def _ransac_circle(points: np.ndarray):
     """scikit-image's robust circle fit to (N, 2) points (x, y): (CircleModel or
     None, inlier mask or None), within RANSAC_RESIDUAL_PX."""
@@ -338,10 +414,18 @@ def _circle_of(model) -> tuple[float, float, float]:
     return cx, cy, r
 
 
-def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
-                 bright: float, camera: Camera | None = None) -> tuple[float, float, float]:
-    """The circle through the sphere's edge near ``circle`` (see :func:`find_sphere`);
-    ``circle`` itself when too few radii cross a lit edge."""
+class _Edges(NamedTuple):
+    """The sphere's edge along each lit radius of a circle (1-D arrays, one per radius)."""
+
+    angle: np.ndarray     # radians, from +x towards +y (rows)
+    radius: np.ndarray    # where the brightest picture falls to half its shoulder, px
+    shoulder: np.ndarray  # the ramp's shoulder (EDGE_SHOULDER of the largest value), px
+    outside: np.ndarray   # the value EDGE_OUTER_PX outside the circle over the largest
+
+
+def _edge_points(brightest: np.ndarray, circle: tuple[float, float, float],
+                 bright: float) -> _Edges:
+    """Along EDGE_RAYS radii of ``circle``, the lit ones' edge (see :func:`find_sphere`)."""
     from scipy.ndimage import map_coordinates
 
     cx, cy, r = circle
@@ -360,7 +444,17 @@ def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
     rays, last, half = np.flatnonzero(lit), last[lit], half[lit]
     above, below = profile[rays, last], profile[rays, last + 1]
     edge = r + along[last] + (above - half) / np.maximum(above - below, 1e-12) * EDGE_STEP_PX
-    points = np.stack([cx + edge * np.cos(angle[rays]), cy + edge * np.sin(angle[rays])], axis=1)
+    return _Edges(angle[rays], edge, r + along[shoulder[rays]], profile[rays, -1] / top[rays])
+
+
+def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
+                 bright: float, camera: Camera | None = None) -> tuple[float, float, float]:
+    """The circle through the sphere's edge near ``circle`` (see :func:`find_sphere`);
+    ``circle`` itself when too few radii cross a lit edge."""
+    cx, cy, _ = circle
+    edges = _edge_points(brightest, circle, bright)
+    points = np.stack([cx + edges.radius * np.cos(edges.angle),
+                       cy + edges.radius * np.sin(edges.angle)], axis=1)
     if len(points) < MIN_OUTLINE_POINTS:
         return circle
     model, inliers = _ransac_circle(points)

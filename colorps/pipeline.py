@@ -31,7 +31,7 @@ from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
 from .camera import Camera
 from .errors import InputError, OutputError
 from .figures import overview_step
-from .gauge import Gauge, find_sphere
+from .gauge import Gauge, find_sphere, rim_margin
 from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
@@ -310,12 +310,18 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")
     sphere = find_sphere(gauge_stack, inputs.camera) if inputs.sphere == "auto" \
         else tuple(inputs.sphere)
-    gauge = Gauge.from_sphere(gauge_stack.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
-                              camera=inputs.camera)
+
+    def photographed(images):  # its rim margin measured on the images as read
+        return Gauge.from_sphere(images.shape[1:3], *sphere, albedo=inputs.gauge_albedo,
+                                 camera=inputs.camera,
+                                 rim_margin=rim_margin(images, sphere, inputs.camera))
+
+    gauge = photographed(gauge_stack)
     checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
                           top_code(stacks.gauge_infos[0]))
     if checked["decoded_as"]:
         gauge_stack, _ = read_stack(stacks.gauge_paths, "linear", name="gauge")
+        gauge = photographed(gauge_stack)
         scene, run = _read_as_linear(scene, stacks, run, progress)
     return gauge, gauge_stack, run, None, checked, scene
 
@@ -341,7 +347,7 @@ def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan
     return dict(
         colorps_version=__version__, scene=[str(p) for p in stacks.scene_paths],
         gauge=[str(p) for p in stacks.gauge_paths],
-        sphere=dict(zip(("cx", "cy", "r"), gauge.sphere)),
+        sphere=dict(zip(("cx", "cy", "r", "rim_margin"), (*gauge.sphere, gauge.rim_margin))),
         sphere_found_automatically=inputs.sphere == "auto",
         camera=None if inputs.camera is None else inputs.camera.as_dict(),
         lights=None if inputs.lights is None else str(inputs.lights),
