@@ -21,7 +21,8 @@ the sets whose names hold it.
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
 
-* **gauge**: ``colorps.reconstruct`` with the rendered gauge, default options;
+* **gauge**: ``colorps.reconstruct`` with the rendered gauge, default options
+  (its rim margin measured as ``colorps reconstruct`` measures it);
 * **virtual**: the gauge rendered under the calibrated lights with the finish
   fitted to the scene (:func:`colorps.virtual.virtual_gauge`, what ``--lights``
   does);
@@ -52,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from colorps import Gauge, Lights, Options, angular_error, reconstruct, synth
 from colorps.camera import Camera
 from colorps.finishes import Gloss
+from colorps.gauge import rim_margin
 from colorps.matte_lights import matte_sphere_lights
 from colorps.resolve import StackModel, resolve
 from colorps.shapes import dome_lights, folds_surface
@@ -85,7 +87,6 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
     if perspective:  # the optical axis 0.8 diameters to the left of the sphere
         focal = 6 * 2 * radius
         camera = Camera(focal, focal, centre - 1.6 * radius, centre)
-    gauge = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius, camera=camera)
     whole = Gauge.from_sphere((gauge_size, gauge_size), centre, centre, radius, rim_margin=0.0,
                               camera=camera)  # the sphere as photographed, to its edge
     ball = synth.SyntheticSurface(normals=np.where(whole.mask[..., None], whole.normals, 0.0),
@@ -97,6 +98,9 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
         gauge_stack = np.minimum(gauge_exposure * gauge_stack, 1.0)
     if eight_bit:
         stack, gauge_stack = quantise_srgb(stack), quantise_srgb(gauge_stack)
+    circle = (centre, centre, radius)  # its rim margin measured, as colorps reconstruct does
+    gauge = Gauge.from_sphere((gauge_size, gauge_size), *circle, camera=camera,
+                              rim_margin=rim_margin(gauge_stack, circle, camera))
     return scene, lights, stack, gauge_stack, gauge
 
 
@@ -181,7 +185,7 @@ def main(argv=None) -> None:
         seconds = time.perf_counter() - t0
         plain = None
         if extra.get("perspective"):  # the same images, the gauge read orthographically
-            flat = Gauge.from_sphere(gauge.mask.shape, *gauge.sphere)
+            flat = Gauge.from_sphere(gauge.mask.shape, *gauge.sphere, rim_margin=gauge.rim_margin)
             plain = reconstruct(stack, gauge_stack, flat, mask=mask)
         calibrated = Lights(lights.directions[:, 0, :], lights.colours[:, 0, :])
         virtual = run_virtual(stack, calibrated, mask)
