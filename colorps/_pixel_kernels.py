@@ -22,8 +22,8 @@ def _invalid(v, floor):
 
 @njit(cache=True, parallel=True)
 def observation_vectors(stack, first_row, first_col, mixing, clip_level, min_norm,
-                        negative_fraction, ov, norms, band_invalid, band_clipped, band_dark, clipped_lights,
-                        invalid_lights):
+                        negative_fraction, ov, norms, band_invalid, band_clipped, band_dark,
+                        clipped_lights, invalid_lights):
     """Fill the observation vectors of every pixel, their norms and their flags.
 
     Parameters

@@ -20,7 +20,8 @@ from .camera import Camera
 from .errors import GaugeError, InputError
 from .geometry import circle_of_cone, silhouette_cone, sphere_normals
 
-__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo", "rim_margin"]
+__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo",
+           "rim_margin"]
 
 #: Albedo of a gauge when none is given: a white gauge gives absolute albedo.
 DEFAULT_ALBEDO = 1.0
