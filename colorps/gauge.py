@@ -233,7 +233,8 @@ class Gauge:
         return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack)
 
 
-def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, float]:
+def find_sphere(stack, camera: Camera | None = None, *, exclude=None
+                ) -> tuple[float, float, float]:
     """Find the gauge sphere's silhouette in a gauge stack.
 
     The brightest value of every pixel over all images is taken (the union of
@@ -275,6 +276,9 @@ def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, floa
         Linear gauge images.
     camera : Camera, optional
         The pinhole camera the images were taken with (default orthographic).
+    exclude : (H, W) array_like of bool, optional
+        Pixels that are not the gauge, left out of the search: the object, when
+        the gauge shares the scene's frame.
 
     Returns
     -------
@@ -297,6 +301,9 @@ def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, floa
         raise GaugeError(f"sphere auto: the {data.shape[2]}x{data.shape[1]} gauge images "
                          f"are too small to hold a sphere of {MIN_RADIUS:g}+ px radius")
     brightest, bright = _brightest(data)
+    if exclude is not None:
+        brightest = np.where(np.asarray(exclude, dtype=bool), np.float32(0.0), brightest)
+        bright = float(np.percentile(brightest, BRIGHT_PERCENTILE))
     if not bright > 0:
         raise GaugeError("sphere auto: the gauge images are black; cannot find the sphere")
     level = SEGMENT_LEVEL * bright
@@ -309,7 +316,8 @@ def find_sphere(stack, camera: Camera | None = None) -> tuple[float, float, floa
         raise GaugeError(
             f"sphere auto: two bright regions of {sizes[ranked[0]]} and "
             f"{sizes[ranked[1]]} px could each be the gauge; crop the gauge images to one "
-            "sphere or give --sphere CX,CY,R")
+            "sphere or give --sphere CX,CY,R (or, for a gauge in the scene's own frame, "
+            "--mask of the object)")
     region = labels == ranked[0] + 1
     # Subpixel boundary of the region, on the image masked to it.
     contours = measure.find_contours(np.where(region, brightest, 0.0), level)

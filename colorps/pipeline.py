@@ -308,8 +308,12 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
         return gauge, gauge.stack, run, (brdf, fits), checked, scene
     gauge_stack, _ = read_stack(stacks.gauge_paths, encoding, name="gauge", progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")
-    sphere = find_sphere(gauge_stack, inputs.camera) if inputs.sphere == "auto" \
-        else tuple(inputs.sphere)
+    if inputs.sphere == "auto":  # in the scene's own frame: looked for outside the object
+        same_frame = list(stacks.gauge_paths) == list(stacks.scene_paths)
+        sphere = find_sphere(gauge_stack, inputs.camera,
+                             exclude=mask if same_frame else None)
+    else:
+        sphere = tuple(inputs.sphere)
 
     def photographed(images):  # its rim margin measured on the images as read
         return Gauge.from_sphere(images.shape[1:3], *sphere, albedo=inputs.gauge_albedo,

@@ -233,3 +233,45 @@ def test_report_times_every_phase_and_writing_shows_progress(sample, tmp_path, c
     assert phases <= run["total"] + 1e-6 and phases > 0.9 * run["total"]
     assert run["reconstruct"] >= report["statistics"]["seconds"]["total"] - 0.05
     assert run["writing"] >= report["statistics"]["seconds"]["integration"] - 0.05
+
+
+def test_a_gauge_in_the_scenes_own_frame(sample, tmp_path, capsys):
+    """Scene and gauge in one photograph per light: --scene and --gauge name the
+    same files, and --sphere auto looks for the sphere outside --mask (the
+    object). The normals are those of the gauge photographed apart; without the
+    mask the two bright regions are refused, and the message says what to give."""
+    import numpy as np
+
+    folder, info = sample
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    mask = read_image(folder / "mask.png", "linear")[0][..., 0] > 0.5
+    scenes = sorted(folder.glob("scene_*.exr"))
+    for k, (scene_path, gauge_path) in enumerate(zip(scenes, sorted(folder.glob("gauge_*.exr")))):
+        scene, gauge = read_image(scene_path)[0], read_image(gauge_path)[0]
+        frame = np.zeros((max(len(scene), len(gauge)), scene.shape[1] + gauge.shape[1], 3),
+                         np.float32)
+        frame[:len(scene), :scene.shape[1]] = scene
+        frame[:len(gauge), scene.shape[1]:] = gauge
+        write_image(frames / f"photo_{k}.exr", frame)
+    whole_mask = np.zeros(frame.shape[:2], np.float32)
+    whole_mask[:mask.shape[0], :mask.shape[1]] = mask
+    write_image(frames / "mask.png", whole_mask, dtype="uint8")
+    photos = str(frames / "photo_*.exr")
+    common = ["reconstruct", "--scene", photos, "--gauge", photos, "--sphere", "auto",
+              "--quiet", "--no-height"]
+    assert main([*common, "--out", str(tmp_path / "unmasked")]) != 0
+    assert "--mask of the object" in capsys.readouterr().err
+    assert main([*common, "--mask", str(frames / "mask.png"), "--out",
+                 str(tmp_path / "framed")]) == 0
+    assert main(args_for(sample, tmp_path / "apart", "--mask", str(folder / "mask.png"),
+                         "--no-height")) == 0
+    report = json.loads((tmp_path / "framed" / "report.json").read_text())
+    g = info["gauge_sphere"]
+    assert abs(report["sphere"]["cx"] - (g["cx"] + mask.shape[1])) < 0.5
+    assert abs(report["sphere"]["cy"] - g["cy"]) < 0.5 and abs(report["sphere"]["r"] - g["r"]) < 1
+    framed = read_image(tmp_path / "framed" / "normal.exr")[0][:mask.shape[0], :mask.shape[1]]
+    apart = read_image(tmp_path / "apart" / "normal.exr")[0]
+    truth = read_image(folder / "truth_normal.exr")[0]
+    errors = [float(np.mean(angular_error(n[mask], truth[mask]))) for n in (framed, apart)]
+    assert errors[0] < 1.2 * errors[1] + 0.05, errors
