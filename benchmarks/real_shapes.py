@@ -15,8 +15,9 @@ in the next row, without it); a white GGX coat (alpha 0.3, the microfacet lobe
 of physically based renderers) of Fresnel reflectance 0.5 on scene and gauge,
 and a varnish (0.04) on the scene only; an 8-bit gauge exposed 1.01 times
 brighter and clipped at the top code (where lights meet it head on), read
-with that clip level; a small gauge (radius 20 px, 8-bit). ``--only TEXT`` runs
-the sets whose names hold it.
+with that clip level; a small gauge (radius 20 px, 8-bit); fireflies (1 % of the
+scene's and the gauge's measurements 3 to 30 times brighter, as a path tracer
+leaves them). ``--only TEXT`` runs the sets whose names hold it.
 
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
@@ -74,7 +75,7 @@ def quantise_srgb(stack: np.ndarray) -> np.ndarray:
 def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: bool, *,
              interreflection: float = 0.0, perspective: bool = False, gloss: float = 0.0,
              gauge_gloss: float = 0.0, gauge_exposure: float | None = None,
-             gauge_radius: float | None = None):
+             gauge_radius: float | None = None, fireflies: float = 0.0):
     lights = dome_lights(m)
     scene = folds_surface(size)
     stack = synth.render(scene, lights, brdf=scene_brdf, roughness=0.3, noise=NOISE, seed=1,
@@ -98,10 +99,23 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
         gauge_stack = np.minimum(gauge_exposure * gauge_stack, 1.0)
     if eight_bit:
         stack, gauge_stack = quantise_srgb(stack), quantise_srgb(gauge_stack)
+    if fireflies:
+        stack, gauge_stack = spiked(stack, fireflies, 3), spiked(gauge_stack, fireflies, 4)
     circle = (centre, centre, radius)  # its rim margin measured, as colorps reconstruct does
     gauge = Gauge.from_sphere((gauge_size, gauge_size), *circle, camera=camera,
                               rim_margin=rim_margin(gauge_stack, circle, camera))
     return scene, lights, stack, gauge_stack, gauge
+
+
+def spiked(stack: np.ndarray, rate: float, seed: int) -> np.ndarray:
+    """``stack`` with ``rate`` of its (image, pixel) measurements 3 to 30 times
+    brighter plus 0.05: a path tracer's fireflies."""
+    rng = np.random.default_rng(seed)
+    hit = rng.random(stack.shape[:3]) < rate
+    gain = rng.uniform(3.0, 30.0, stack.shape[:3])
+    out = stack.copy()
+    out[hit] = out[hit] * gain[hit][:, None] + 0.05
+    return out
 
 
 def scores(normals, solved, truth, mask) -> tuple[float, float, float]:
@@ -172,7 +186,9 @@ def main(argv=None) -> None:
             ("32 lights, 8-bit sRGB, gauge exposed 1.01x and clipped", 32, "lambert", "lambert",
              True, {"gauge_exposure": 1.01}),
             ("32 lights, 8-bit sRGB, small gauge (radius 20 px)", 32, "lambert", "lambert", True,
-             {"gauge_radius": 20})]
+             {"gauge_radius": 20}),
+            ("32 lights, fireflies (1 % of scene and gauge measurements 3-30x)", 32, "lambert",
+             "lambert", False, {"fireflies": 0.01})]
     for name, m, scene_brdf, gauge_brdf, eight_bit, extra in sets:
         if args.only not in name:
             continue

@@ -43,6 +43,7 @@ from .resolve import Resolved, resolve
 from .results import Reconstruction, Timings, low_solved_message, run_statistics
 from .shadows import INLIER_Z, fixes_normal
 from .signatures import SignatureSet, compute_signatures
+from .spikes import replace_spikes
 from .tables import Capture, GaugeTables
 
 __all__ = ["first_residuals", "reconstruct"]
@@ -169,8 +170,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
             release_freed_memory()
         t_refine = time.perf_counter() - t0
         albedo = np.full((*mask.shape, c), np.nan, dtype=np.float32)
-        albedo[solved] = _albedo(setup.scene_sig, stack_box, gauge_stack, solved, matches, offset,
-                                 parse_albedo(gauge.albedo, c), options.clip_level)
+        albedo[solved] = _albedo(setup.scene_sig, stack_box, setup.gauge_stack, solved, matches,
+                                 offset, parse_albedo(gauge.albedo, c), options.clip_level)
         reason = _reasons(setup.scene_sig, mask, solved, matches.row >= 0, matches.dropped)
         message = low_solved_message(reason, mask, solved)
         if message:
@@ -186,7 +187,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
             clip_level=options.clip_level, dark_level=float(options.dark_level),
             dark_threshold=setup.capture.min_norm, noise=setup.capture.model.as_dict(),
             max_residual=options.max_residual, max_distance=options.max_distance,
-            gauge_usable_fraction=setup.usable_gauge, warnings=tuple(setup.said),
+            gauge_usable_fraction=setup.usable_gauge, gauge_spikes_replaced=setup.gauge_spikes,
+            warnings=tuple(setup.said),
             seconds=seconds)
         return _embed(Reconstruction(normals, albedo, matches.quality, uncertainty, solved, reason,
                                      matches.bands_used,
@@ -225,6 +227,8 @@ class _Setup:
     capture: Capture
     scene_sig: SignatureSet
     gauge_sig: SignatureSet
+    gauge_stack: np.ndarray  # its spikes replaced (colorps.spikes)
+    gauge_spikes: int
     usable_gauge: float
     said: list
     seconds: float
@@ -232,10 +236,19 @@ class _Setup:
 
 def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) -> _Setup:
     """Signatures of both stacks (the scene's of its ``box``, None: all), the
-    noise model, and the capture to match."""
+    noise model, and the capture to match; a photographed gauge's spikes are
+    replaced first."""
     options = run.options
     m = scene.shape[0]
     t0 = time.perf_counter()
+    said = []
+    spikes = 0
+    if gauge.stack is None:  # photographed (a rendered gauge has no spikes)
+        gauge_stack, spikes = replace_spikes(gauge_stack, gauge.mask)
+    if spikes:
+        said.append(f"{spikes} isolated spikes in the gauge's images (fireflies, hot "
+                    "pixels) were replaced by their neighbours' median")
+        warnings.warn(said[-1], GaugeWarning, stacklevel=3)
     min_norm = dark_threshold(options.dark_level, m)
     signature_options = dict(band=options.band, colourspace=options.colourspace,
                              min_norm=min_norm, clip_level=options.clip_level)
@@ -244,7 +257,6 @@ def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) ->
     signature_options.update(clip_level=gauge_clip, min_norm=dark_threshold(gauge_dark, m))
     gauge_sig = compute_signatures(gauge_stack, options.mode, **signature_options)
     usable_gauge = float((gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum())
-    said = []
     if usable_gauge < GAUGE_USABLE_WARNING:
         said.append(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
                     "(clipped, too dark or invalid): check the gauge's exposure")
@@ -261,7 +273,7 @@ def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) ->
         gauge_clipped=np.where(gauge.mask[..., None], gauge_sig.clipped_lights, np.uint64(0)),
         gauge_unclipped=~gauge_sig.band_invalid_value & ~gauge_sig.band_dark &
         gauge.mask[..., None], tables=tables)
-    return _Setup(capture, scene_sig, gauge_sig, usable_gauge, said,
+    return _Setup(capture, scene_sig, gauge_sig, gauge_stack, spikes, usable_gauge, said,
                   time.perf_counter() - t0)
 
 

@@ -137,6 +137,9 @@ class ReconstructionStats:
     max_residual, max_distance : float or None
     gauge_usable_fraction : float
         Fraction of the gauge mask with every band usable.
+    gauge_spikes_replaced : int
+        Isolated spikes in a photographed gauge's images replaced by their
+        neighbours' median (:mod:`colorps.spikes`).
     warnings : tuple of str
         What the run warned about (also issued as Python warnings).
     refined : int
@@ -172,6 +175,7 @@ class ReconstructionStats:
     max_residual: float | None
     max_distance: float | None
     gauge_usable_fraction: float
+    gauge_spikes_replaced: int
     warnings: tuple[str, ...]
     refined: int
     uncertainty_median: float | None
