@@ -6,9 +6,9 @@ smooth, so such a measurement is no shading at all, yet it becomes a table
 entry and bends the refinement's local models around it: 0.1 % of a 32-light
 gauge's measurements spiked 3 to 30 times took the folds from 0.12 to 0.77
 degrees mean, 1 % to 3.46 (0.12 and 0.13 with them replaced;
-``docs/benchmarks.md``). A measurement more than SPIKE_RATIO times
-the median of its 3 x 3 neighbourhood (same image and channel), plus
-SPIKE_FLOOR of the gauge's bright level (so that noise around a dark value is
+``docs/benchmarks.md``). A measurement more than SPIKE_RATIO times the median
+of its 8 neighbours (same image and channel), plus SPIKE_FLOOR of the gauge's
+bright level or SPIKE_NOISE noise sds (so that noise around a dark value is
 not a spike), is replaced by that median, and the run says how many were
 (``report.json``'s ``gauge_spikes_replaced``, and a warning). A highlight,
 even a glossy gauge's, spans several pixels and is left as it is.
@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _spike_kernels
+
 __all__ = ["SPIKE_FLOOR", "SPIKE_RATIO", "replace_spikes", "spike_free"]
 
 #: A gauge measurement is a spike when it exceeds SPIKE_RATIO times the median
-#: of its 3 x 3 neighbourhood plus SPIKE_FLOOR times the gauge's bright level
+#: of its 8 neighbours plus SPIKE_FLOOR times the gauge's bright level
 #: (the 99.5th percentile of its brightest picture). On clean, glossy (GGX
 #: alpha 0.3), rough, 8-bit, clipped and 20 px gauges none is found; of fireflies
 #: 3 to 30 times the shading, 86 %, the rest too faint to matter. A ratio of 3
@@ -34,8 +36,9 @@ __all__ = ["SPIKE_FLOOR", "SPIKE_RATIO", "replace_spikes", "spike_free"]
 SPIKE_RATIO = 2.0
 SPIKE_FLOOR = 0.02
 #: ... and over SPIKE_NOISE times the noise (1.4826 x the median absolute
-#: difference of the measurements from their 3 x 3 medians): noise around a dark
-#: value is no spike (a gauge under dim coloured lights, noise 0.005, had one).
+#: difference of the measurements from their neighbours' medians): noise around
+#: a dark value is no spike (a gauge under dim coloured lights, noise 0.005, had
+#: one).
 SPIKE_NOISE = 8.0
 #: Percentile of the gauge's brightest picture taken as its bright level.
 BRIGHT_PERCENTILE = 99.5
@@ -55,7 +58,7 @@ def replace_spikes(stack: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, int
     -------
     (ndarray, int)
         ``stack`` itself when there is no spike, else a float32 copy with each
-        spike replaced by the median of its 3 x 3 neighbourhood; and how many
+        spike replaced by the median of its 8 neighbours; and how many
         measurements were replaced.
 
     Examples
@@ -77,7 +80,7 @@ def replace_spikes(stack: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, int
     part = np.asarray(stack[:, box[0], box[1]], dtype=np.float32)
     values = np.where(np.isfinite(part), part, np.float32(0.0))
     bright = float(np.percentile(values.max(axis=(0, 3))[inside[box]], BRIGHT_PERCENTILE))
-    spike, median = _spikes(values, (1, 3, 3, 1), bright, inside[box][None, ..., None])
+    spike, median = _spikes(values, bright, inside[box][None, ..., None])
     count = int(spike.sum())
     if not count:
         return stack, 0
@@ -88,8 +91,8 @@ def replace_spikes(stack: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, int
 
 def spike_free(picture: np.ndarray) -> np.ndarray:
     """An (H, W) picture with its spikes (as :func:`replace_spikes` finds them,
-    against its own bright level) replaced by their 3 x 3 median: the brightest
-    picture of a gauge's images, where every image's fireflies show at once.
+    against its own bright level) replaced by their neighbours' median: the
+    brightest picture of a gauge's images, where every image's fireflies show.
 
     Examples
     --------
@@ -101,20 +104,20 @@ def spike_free(picture: np.ndarray) -> np.ndarray:
     0.0
     """
     values = np.where(np.isfinite(picture), picture, np.float32(0.0)).astype(np.float32)
-    spike, median = _spikes(values, (3, 3), float(np.percentile(values, BRIGHT_PERCENTILE)),
+    values = np.ascontiguousarray(values[None, ..., None])
+    spike, median = _spikes(values, float(np.percentile(values, BRIGHT_PERCENTILE)),
                             np.ones(values.shape, bool))
-    return np.where(spike, median, values)
+    return np.where(spike, median, values)[0, ..., 0]
 
 
-def _spikes(values: np.ndarray, size: tuple[int, ...], bright: float, where: np.ndarray
+def _spikes(values: np.ndarray, bright: float, where: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
-    """Where (within ``where``) ``values`` exceed SPIKE_RATIO times the median of
-    their ``size`` neighbourhood plus the larger of SPIKE_FLOOR times ``bright``
-    and SPIKE_NOISE times the noise (the robust spread of the values about that
-    median within ``where``); and that median."""
-    from scipy.ndimage import median_filter
-
-    median = median_filter(values, size=size, mode="nearest")
+    """Where (within ``where``) the (m, H, W, c) ``values`` exceed SPIKE_RATIO
+    times the median of their 8 neighbours plus the larger of SPIKE_FLOOR times
+    ``bright`` and SPIKE_NOISE times the noise (the robust spread of the values
+    about that median within ``where``); and that median."""
+    median = np.empty_like(values)
+    _spike_kernels.neighbour_medians(values, median)
     within = np.broadcast_to(where, values.shape)
     spread = np.abs(values - median)[within]
     noise = 1.4826 * float(np.median(spread)) if spread.size else 0.0

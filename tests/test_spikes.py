@@ -82,3 +82,18 @@ def test_fireflies_in_gauge_and_scene(gauge_capture, monkeypatch):
     monkeypatch.setattr(reconstruct_module, "replace_spikes", lambda stack, mask: (stack, 0))
     before, _, _ = error(scene_spiked, gauge_spiked)
     assert before > 3.0 * fixed + 1.0, (before, fixed)
+
+
+def test_neighbour_medians_against_brute_force():
+    """The kernel's median of each measurement's 8 neighbours (the border's
+    nearest pixels standing in beyond it) against numpy's."""
+    from colorps import _spike_kernels
+
+    values = np.random.default_rng(0).random((2, 7, 9, 2)).astype(np.float32)
+    out = np.empty_like(values)
+    _spike_kernels.neighbour_medians(values, out)
+    padded = np.pad(values, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")
+    for y in range(7):
+        for x in range(9):
+            ring = np.delete(padded[:, y:y + 3, x:x + 3].reshape(2, 9, 2), 4, axis=1)
+            np.testing.assert_allclose(out[:, y, x], np.median(ring, axis=1), rtol=1e-6)
