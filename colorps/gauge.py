@@ -231,7 +231,8 @@ class Gauge:
         else:
             stack = render(ball, lighting, brdf=brdf)
         gauge = cls.from_sphere((size, size), centre, centre, radius, albedo=DEFAULT_ALBEDO)
-        return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack)
+        return cls(gauge.normals, gauge.mask, gauge.albedo, gauge.sphere, stack,
+                   rim_margin=gauge.rim_margin)
 
 
 def find_sphere(stack, camera: Camera | None = None, *, exclude=None
