@@ -126,7 +126,7 @@ def test_a_small_gauge_keeps_its_steep_normals():
     lights = dome_lights(32)
     scene = folds_surface(120)
     stack = synth.render(scene, lights, noise=0.003, seed=1)
-    gauge_stack, centre = antialiased_sphere(20, lights)
+    gauge_stack, _ = antialiased_sphere(20, lights)
     gauge_stack += np.random.default_rng(2).normal(0, 0.003, gauge_stack.shape).astype(np.float32)
     circle = find_sphere(gauge_stack)
     tilt = np.degrees(np.arccos(scene.normals[..., 2]))
