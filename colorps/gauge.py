@@ -19,7 +19,7 @@ import numpy as np
 from .camera import Camera
 from .errors import GaugeError, InputError
 from .geometry import circle_of_cone, silhouette_cone, sphere_normals
-from .spikes import spike_free
+from .spikes import BRIGHT_PERCENTILE, spike_free
 
 __all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo",
            "rim_margin"]
@@ -54,8 +54,8 @@ DARK_BACKGROUND = 0.05
 #: (inliers within RANSAC_RESIDUAL_PX, RANSAC_TRIALS trials) must explain
 #: MIN_INLIER_FRACTION of it over an arc of MIN_ARC_DEG, hold MIN_INSIDE of the
 #: region within REGION_SLACK_PX of its rim, and be MIN_COVER covered by it (a
-#: sphere lit from one side only shows half its disk).
-BRIGHT_PERCENTILE = 99.5
+#: sphere lit from one side only shows half its disk). BRIGHT_PERCENTILE is
+#: :mod:`colorps.spikes`'s, which cleans that picture first.
 SEGMENT_LEVEL = 0.05
 #: find_sphere's edge: EDGE_RAYS radii sampled every EDGE_STEP_PX from
 #: EDGE_INNER_PX inside the outline's circle to EDGE_OUTER_PX outside; on each,

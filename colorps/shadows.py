@@ -190,10 +190,10 @@ def _interior(usable: np.ndarray) -> np.ndarray:
 
 def _usable_gauge(capture: Capture) -> np.ndarray:
     """(Hg, Wg, B) gauge bands usable over the lights that leave out their
-    pixel's clipped ones."""
-    if capture.gauge_unclipped is None:
-        return np.ascontiguousarray(capture.gauge_valid)
-    return np.ascontiguousarray(capture.gauge_valid | capture.gauge_unclipped)
+    pixel's clipped ones (``gauge_unclipped``, which holds ``gauge_valid``)."""
+    usable = capture.gauge_valid if capture.gauge_unclipped is None else \
+        capture.gauge_unclipped
+    return np.ascontiguousarray(usable)
 
 
 def _gauge_ovs(capture: Capture) -> _shadow_kernels.GaugeOVs:

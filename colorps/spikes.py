@@ -24,7 +24,8 @@ import numpy as np
 
 from . import _spike_kernels
 
-__all__ = ["SPIKE_FLOOR", "SPIKE_RATIO", "replace_spikes", "spike_free"]
+__all__ = ["BRIGHT_PERCENTILE", "SPIKE_FLOOR", "SPIKE_RATIO", "replace_spikes",
+           "spike_free"]
 
 #: A gauge measurement is a spike when it exceeds SPIKE_RATIO times the median
 #: of its 8 neighbours plus SPIKE_FLOOR times the gauge's bright level
@@ -40,7 +41,8 @@ SPIKE_FLOOR = 0.02
 #: a dark value is no spike (a gauge under dim coloured lights, noise 0.005, had
 #: one).
 SPIKE_NOISE = 8.0
-#: Percentile of the gauge's brightest picture taken as its bright level.
+#: Percentile of a gauge's brightest picture taken as its bright level (also
+#: find_sphere's, :mod:`colorps.gauge`).
 BRIGHT_PERCENTILE = 99.5
 
 
