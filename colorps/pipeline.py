@@ -64,7 +64,6 @@ from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock
 from .tiles import StackFiles, dask_client, reconstruct_tiled
 from .virtual import match_along_rays, virtual_gauge, with_gauge_lights
-from .warm_up import start_warm_up
 
 __all__ = ["calibrate_lights_files", "integrate_file", "reconstruct_files"]
 
@@ -118,7 +117,6 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
     (True, True)
     """
     with one_blas_thread():
-        start_warm_up()
         options = options or Options()
         clock = RunClock()
         clock.start("checking")
