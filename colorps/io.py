@@ -52,6 +52,7 @@ __all__ = [
     "srgb_decode",
     "srgb_encode",
     "top_code",
+    "warn_lossy_stack",
     "write_image",
 ]
 
@@ -67,6 +68,8 @@ _MAX_CODE = {"uint8": 255, "int8": 127, "uint16": 65535, "int16": 32767,
              "uint32": 4294967295, "int32": 2147483647}
 #: Dark level of integer files, in codes of the file's pixel type.
 DARK_CODES = 2.0
+#: What a warning about JPEG input says after the file's name.
+LOSSY_ADVICE = "JPEG is lossy 8-bit; expect noisier normals than from raw, 16-bit TIFF or EXR"
 #: Header attributes of a photo's exposure (OpenImageIO's names of the EXIF
 #: tags) and what colorps calls them: seconds, f-number, ISO sensitivity.
 EXPOSURE_ATTRIBUTES = {"ExposureTime": "time", "FNumber": "f_number",
@@ -131,6 +134,8 @@ class ImageInfo:
     exposure : dict
         The exposure settings the header records (EXIF): any of "time"
         (seconds), "f_number" and "iso"; empty for most EXR and for converted files.
+    file_format : str
+        OpenImageIO's name of the file format ("openexr", "png", "jpeg", "tiff", ...).
     """
 
     path: Path
@@ -139,6 +144,7 @@ class ImageInfo:
     channels: int
     pixel_type: str
     exposure: dict = field(default_factory=dict, compare=False)
+    file_format: str = ""
 
     @property
     def decoded_bytes(self) -> int:
@@ -159,7 +165,8 @@ def read_info(path) -> ImageInfo:
             if isinstance(value, (int, float)) and np.isfinite(value) and value > 0:
                 exposure.setdefault(key, float(value))
         return ImageInfo(path, int(spec.width), int(spec.height),
-                         int(spec.nchannels) - alpha, str(spec.format), exposure)
+                         int(spec.nchannels) - alpha, str(spec.format), exposure,
+                         inp.format_name())
     finally:
         inp.close()
 
@@ -200,6 +207,21 @@ def check_stack_files(paths: Sequence, *, name: str = "stack",
     if max_bytes is not None:
         check_decoded_size(infos, max_bytes, name=name)
     return infos
+
+
+def warn_lossy_stack(infos: Sequence[ImageInfo], name: str = "stack") -> None:
+    """Warn once (:class:`~colorps.errors.LossyInputWarning`) when a stack's
+    files (their checked headers) are JPEG, naming the first and how many."""
+    lossy = [info.path for info in infos if info.file_format == "jpeg"]
+    if not lossy:
+        return
+    if len(infos) == 1:
+        which = ""
+    elif len(lossy) == 1:
+        which = f" (1 of the {name}'s {len(infos)} images)"
+    else:
+        which = f" (and {len(lossy) - 1} more of the {name}'s {len(infos)} images)"
+        warnings.warn(f"{lossy[0]}{which}: {LOSSY_ADVICE}", LossyInputWarning, stacklevel=3)
 
 
 def _check_distinct(paths: Sequence[Path], name: str) -> None:
@@ -333,8 +355,8 @@ def srgb_encode(values) -> np.ndarray:
     return np.clip(out, 0.0, 1.0, out=out)
 
 
-def read_image(path, encoding: Encoding = "auto", *,
-               rows: tuple[int, int] | None = None) -> tuple[np.ndarray, list[str]]:
+def read_image(path, encoding: Encoding = "auto", *, rows: tuple[int, int] | None = None,
+               warn_lossy: bool = True) -> tuple[np.ndarray, list[str]]:
     """Read one image as linear float32.
 
     Parameters
@@ -347,6 +369,8 @@ def read_image(path, encoding: Encoding = "auto", *,
         Read only these rows (scanlines ``start`` to ``stop - 1``): OpenImageIO
         decodes little more than them, so a tile of a large image costs its
         own size in memory.
+    warn_lossy : bool, optional
+        Warn (:class:`~colorps.errors.LossyInputWarning`) when the file is a JPEG.
 
     Returns
     -------
@@ -383,9 +407,8 @@ def read_image(path, encoding: Encoding = "auto", *,
         inp.close()
     if pixels is None or problem:
         raise ImageReadError(f"{path}: corrupt or truncated image ({problem or 'no data'})")
-    if file_format == "jpeg":
-        warnings.warn(f"{path}: JPEG is lossy 8-bit; expect noisier normals than from "
-                      "raw, 16-bit TIFF or EXR", LossyInputWarning, stacklevel=2)
+    if warn_lossy and file_format == "jpeg":
+        warnings.warn(f"{path}: {LOSSY_ADVICE}", LossyInputWarning, stacklevel=2)
     pixels = np.asarray(pixels).reshape(height, spec.width, -1)
     names = list(spec.channelnames)
     keep = [k for k in range(spec.nchannels) if k != spec.alpha_channel]
@@ -422,10 +445,13 @@ def read_mask(path, shape: tuple[int, int]) -> np.ndarray:
 
 def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "stack",
                progress: bool = False, max_bytes: float | None = None,
-               rows: tuple[int, int] | None = None) -> tuple[np.ndarray, list[str]]:
+               rows: tuple[int, int] | None = None,
+               warn_lossy: bool = True) -> tuple[np.ndarray, list[str]]:
     """Read images that share size, channels and pixel type into a (m, H, W, c) stack.
 
-    ``rows`` = (start, stop) reads only those rows of each image (a tile).
+    ``rows`` = (start, stop) reads only those rows of each image (a tile). With
+    ``warn_lossy``, JPEG files are warned about once for the stack
+    (:func:`warn_lossy_stack`).
 
     All headers are checked first (:func:`check_stack_files`), so a file that
     does not fit is refused before any pixel is decoded.
@@ -444,7 +470,9 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
     from tqdm.auto import tqdm
 
     paths = [Path(p) for p in paths]
-    check_stack_files(paths, name=name, max_bytes=max_bytes)
+    infos = check_stack_files(paths, name=name, max_bytes=max_bytes)
+    if warn_lossy:
+        warn_lossy_stack(infos, name)
     first, names, stack = None, None, None
     bar = tqdm(total=len(paths), desc=f"reading {name}", disable=not progress, leave=False)
     # Decoded by READ_THREADS at a time (OpenImageIO lets go of the GIL), in order,
@@ -452,7 +480,8 @@ def read_stack(paths: Sequence, encoding: Encoding = "auto", *, name: str = "sta
     with bar, ThreadPoolExecutor(min(READ_THREADS, len(paths))) as pool:
         reading = deque()
         for k, path in enumerate(paths):
-            reading.append((k, path, pool.submit(read_image, path, encoding, rows=rows)))
+            reading.append((k, path, pool.submit(read_image, path, encoding, rows=rows,
+                                                     warn_lossy=False)))
             while reading and (len(reading) > READ_THREADS or k == len(paths) - 1):
                 at, source, job = reading.popleft()
                 image, channel_names = job.result()

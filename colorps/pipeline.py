@@ -45,6 +45,7 @@ from .io import (
     read_mask,
     read_stack,
     top_code,
+    warn_lossy_stack,
 )
 from .lights import LIGHT_FORMATS, read_lights, write_intensities, write_lights
 from .matte_lights import matte_sphere_lights, matte_table
@@ -256,8 +257,10 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
 
         tqdm.write(f"colorps: the scene's {h} rows in tiles of {plan.rows} ({plan.why})",
                    file=sys.stderr)
+    warn_lossy_stack(stacks.scene_infos, "scene")
     scene = StackFiles(tuple(stacks.scene_paths), stacks.shape, options.encoding)
-    return scene, read_image(stacks.scene_paths[0], options.encoding, rows=(0, 1))[1]
+    return scene, read_image(stacks.scene_paths[0], options.encoding, rows=(0, 1),
+                             warn_lossy=False)[1]
 
 
 def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, mask,
@@ -324,7 +327,8 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
                           top_code(stacks.gauge_infos[0]))
     if checked["decoded_as"]:
-        gauge_stack, _ = read_stack(stacks.gauge_paths, "linear", name="gauge")
+        gauge_stack, _ = read_stack(stacks.gauge_paths, "linear", name="gauge",
+                                    warn_lossy=False)  # (said on the first reading)
         gauge = photographed(gauge_stack)
         scene, run = _read_as_linear(scene, stacks, run, progress)
     return gauge, gauge_stack, run, None, checked, scene
@@ -337,7 +341,8 @@ def _read_as_linear(scene, stacks: _Stacks, run: Resolved, progress: bool):
     if isinstance(scene, StackFiles):
         scene = StackFiles(scene.paths, scene.shape, "linear")
     elif top_code(stacks.scene_infos[0]) is not None:
-        scene, _ = read_stack(stacks.scene_paths, "linear", name="scene", progress=progress)
+        scene, _ = read_stack(stacks.scene_paths, "linear", name="scene", progress=progress,
+                              warn_lossy=False)  # (said on the first reading)
     return scene, resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], "linear"),
                           gauge=None if stacks.light_set is not None else
                           StackModel.of_file(stacks.gauge_infos[0], "linear"))

@@ -77,7 +77,8 @@ class StackFiles:
                 and isinstance(key[1], slice) and key[1].step in (None, 1)):
             raise TypeError("StackFiles supports stack[:, start:stop] only")
         start, stop, _ = key[1].indices(self.shape[1])
-        return read_stack(self.paths, self.encoding, name=self.name, rows=(start, stop))[0]
+        return read_stack(self.paths, self.encoding, name=self.name, rows=(start, stop),
+                          warn_lossy=False)[0]  # (said once, when the run began)
 
 
 def reconstruct_tiled(scene, gauge_stack, gauge: Gauge,

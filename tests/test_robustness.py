@@ -193,13 +193,19 @@ def test_jpeg_inputs_warn_and_continue(sample, tmp_path, capsys):
     jpg.mkdir()
     for k, path in enumerate(sorted(folder.glob("scene_*.exr"))):
         write_image(jpg / f"scene_{k}.jpg", srgb_encode(read_image(path)[0]), dtype="uint8")
-    args = cli_args(sample, tmp_path / "o", scene=str(jpg / "scene_*.jpg"))
-    args += ["--encoding", "srgb"]
-    run = subprocess.run([sys.executable, "-m", "colorps.cli", *args], capture_output=True,
-                         text=True)
-    assert run.returncode == 0, run.stderr
-    assert "colorps: warning:" in run.stderr and "JPEG is lossy" in run.stderr
-    assert (tmp_path / "o" / "normal.exr").exists()
+    m = k + 1
+    # Whole and in tiles (whose rows are read again for each tile): said once, for
+    # the stack, naming its first file.
+    for out, tiles in (("o", []), ("tiled", ["--tile", "24"])):
+        args = cli_args(sample, tmp_path / out, scene=str(jpg / "scene_*.jpg"))
+        args += ["--encoding", "srgb", *tiles]
+        run = subprocess.run([sys.executable, "-m", "colorps.cli", *args],
+                             capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        assert run.stderr.count("JPEG is lossy") == 1, run.stderr
+        assert f"colorps: warning: {jpg / 'scene_0.jpg'} (and {m - 1} more of the " \
+               f"scene's {m} images): JPEG is lossy" in run.stderr, run.stderr
+        assert (tmp_path / out / "normal.exr").exists()
 
 
 def test_negative_and_nan_pixels_are_reported(sample, tmp_path):
