@@ -64,12 +64,19 @@ def sphere_normals(shape: tuple[int, int], cx: float, cy: float, radius: float,
 
 
 def angular_error(a, b) -> np.ndarray:
-    """Angle between unit normals, in degrees.
+    """Angle between normals, in degrees.
+
+    Computed as atan2(|a x b|, a . b), which keeps its precision at small
+    angles: arccos of the dot product cannot tell apart angles under about
+    0.03 degrees between float32 unit vectors (two identical normals of a map
+    came out up to 0.026 degrees apart), a floor under the medians of clean
+    renders.
 
     Parameters
     ----------
     a, b : (..., 3) array_like
-        Unit vectors (broadcast against each other).
+        Directions (broadcast against each other); unit vectors, or of any
+        non-zero length.
 
     Returns
     -------
@@ -84,8 +91,8 @@ def angular_error(a, b) -> np.ndarray:
     """
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    cos = np.clip((a * b).sum(axis=-1), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
+    sine = np.linalg.norm(np.cross(a, b), axis=-1)
+    return np.degrees(np.arctan2(sine, (a * b).sum(axis=-1)))
 
 
 def _pinhole_sphere_normals(x, y, cx, cy, radius, camera: Camera, shape):

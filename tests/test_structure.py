@@ -114,6 +114,24 @@ def test_sphere_normals_and_angular_error():
     assert np.isnan(angular_error([np.nan, 0, 1], [0, 0, 1]))
 
 
+def test_angular_error_keeps_its_precision_at_small_angles(rng):
+    """Identical float32 normals are 0 degrees apart (arccos of their dot product
+    had given up to 0.026), and angles of 1e-5 to 1e-1 degrees come out as the
+    chord formula 2 asin(|a - b| / 2) gives them, for vectors of any length."""
+    normals = rng.normal(size=(100_000, 3)).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    assert angular_error(normals, normals).max() == 0.0
+    a = rng.normal(size=(1000, 3))
+    a /= np.linalg.norm(a, axis=-1, keepdims=True)
+    axis = np.cross(a, rng.normal(size=(1000, 3)))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    angle = np.radians(10.0 ** rng.uniform(-5, -1, 1000))
+    b = a * np.cos(angle)[:, None] + np.cross(axis, a) * np.sin(angle)[:, None]
+    chord = np.degrees(2 * np.arcsin(np.linalg.norm(a - b, axis=-1) / 2))
+    np.testing.assert_allclose(angular_error(3.0 * a, 0.5 * b), chord, rtol=1e-6)
+    np.testing.assert_allclose(chord, np.degrees(angle), rtol=1e-6)
+
+
 def test_gauge_and_synthetic_sphere_share_the_formula():
     gauge = colorps.Gauge.from_sphere((60, 60), 29.5, 29.5, 25)
     ball = synth.sphere_surface(60, 25)
