@@ -64,6 +64,14 @@ MIN_FIT_COSINE = 0.02
 #: matched with a too-matte gauge are tilted to explain the highlights, and
 #: fits at them alone underestimate the highlight.
 JOINT_ROUNDS = 4
+#: The falloff and the normals' tilt explain much the same shading, so fitting
+#: them in turn creeps along that valley: each round's step of the normals is
+#: taken OVER_RELAXATION times as long (successive over-relaxation). An
+#: Oren-Nayar 0.3 scene matched first with a Lambertian gauge (normals 5.1
+#: degrees off): after the 4 rounds, normals 1.48 degrees off and a falloff of
+#: 0.52 at grazing with 1 (plain alternation), 0.26 and 1.06 (the truth: 1) with
+#: 1.5; 2 overshoots (1.68), 3 diverges.
+OVER_RELAXATION = 1.5
 NORMAL_STEPS = 5
 MAX_NORMAL_STEP = 0.1
 NORMAL_EPS = 1e-4
@@ -298,7 +306,7 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     roughness_grid = ROUGHNESS_GRID[::2]  # every other value first, then neighbours
     for round_ in range(1 + JOINT_ROUNDS):
         if round_:
-            normals = _refine_normals(obs, base_weight, normals, brdf, directions)
+            normals = _relaxed_normals(obs, base_weight, normals, brdf, directions)
         cosine, cos_half = _angles(normals, directions)  # one round's normals
         hats = _hats(cosine)  # (m, N, K)
         fits = {}
@@ -329,6 +337,14 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     if not np.any(brdf.specular):
         brdf = BRDF(brdf.falloff, brdf.specular, roughness=brdf.roughness)
     return brdf, float(np.sqrt(cost))
+
+
+def _relaxed_normals(obs, weight, normals, brdf: BRDF, directions) -> np.ndarray:
+    """The sample's normals refined under ``brdf``, their step over-relaxed
+    (OVER_RELAXATION)."""
+    refined = _refine_normals(obs, weight, normals, brdf, directions)
+    moved = normals + OVER_RELAXATION * (refined - normals)
+    return moved / np.linalg.norm(moved, axis=1, keepdims=True)
 
 
 def _refine_normals(obs, weight, normals, brdf: BRDF, directions) -> np.ndarray:
