@@ -137,6 +137,31 @@ def test_a_gauge_of_another_finish_is_noticed_and_solved(rough_capture, tmp_path
     assert checked < 0.25 * gauge_only and checked < 0.3, (checked, gauge_only)
 
 
+def test_a_gauge_a_little_off_the_scenes_finish_is_noticed(tmp_path, capsys):
+    """A scene only a little rougher than its Lambertian gauge (Oren-Nayar 0.2):
+    it matches the gauge at 1.8 noise units, and every normal is 2.4 degrees off
+    through it. That is past FINISH_HINT_SCALE, the gauge's lights with the
+    scene's own finish match far better, and the normals come out 0.16 off."""
+    lighting, _ = coloured_lights(16)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lighting, brdf="oren-nayar", roughness=0.2, noise=0.002,
+                         seed=2)
+    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
+        write_image(tmp_path / f"scene_{k:02d}.exr", image)
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    gauge = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto"]
+    assert _reconstruct(tmp_path, tmp_path / "gauge_only", *gauge, "--no-finish-check") == 0
+    assert _reconstruct(tmp_path, tmp_path / "checked", *gauge) == 0
+    assert "Solved instead" in capsys.readouterr().err
+    finish = json.loads((tmp_path / "checked" / "report.json").read_text())["gauge_check"][
+        "finish"]
+    assert finish["taken"] and 1.5 < finish["residual_with_gauge"] < 2.5
+    gauge_only, checked = _error(tmp_path / "gauge_only", scene), _error(tmp_path / "checked",
+                                                                         scene)
+    assert checked < 0.3 < 1.5 < gauge_only, (checked, gauge_only)
+
+
 def test_a_tiled_run_says_how_to_solve_another_finish(rough_capture, tmp_path, capsys):
     folder, _, _, _ = rough_capture
     assert _reconstruct(folder, tmp_path / "tiled", "--gauge", str(folder / "gauge_*.exr"),
