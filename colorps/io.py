@@ -213,14 +213,9 @@ def warn_lossy_stack(infos: Sequence[ImageInfo], name: str = "stack") -> None:
     """Warn once (:class:`~colorps.errors.LossyInputWarning`) when a stack's
     files (their checked headers) are JPEG, naming the first and how many."""
     lossy = [info.path for info in infos if info.file_format == "jpeg"]
-    if not lossy:
-        return
-    if len(infos) == 1:
-        which = ""
-    elif len(lossy) == 1:
-        which = f" (1 of the {name}'s {len(infos)} images)"
-    else:
-        which = f" (and {len(lossy) - 1} more of the {name}'s {len(infos)} images)"
+    if lossy:
+        more = f"and {len(lossy) - 1} more of" if len(lossy) > 1 else "1 of"
+        which = f" ({more} the {name}'s {len(infos)} images)" if len(infos) > 1 else ""
         warnings.warn(f"{lossy[0]}{which}: {LOSSY_ADVICE}", LossyInputWarning, stacklevel=3)
 
 
