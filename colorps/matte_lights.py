@@ -1,23 +1,28 @@
-"""Light directions and intensities from a matte sphere: a Lambertian fit per image.
+"""Light directions and intensities from a matte sphere: a diffuse fit per image.
 
 A distant light of direction l and intensity E_b in band b shows on a matte
-(Lambertian) sphere of albedo a_b as I_b(n) = a_b E_b max(n . l, 0) at the
-pixel of normal n (:class:`colorps.Gauge`'s normals within its rim margin). Over
-the lit part of the sphere this is linear in s = sum_b a_b E_b l, so each
-image's light is the least-squares fit of the bands' sum that
+sphere of albedo a_b as I_b(n) = a_b E_b R(n, l) max(n . l, 0) at the pixel of
+normal n (:class:`colorps.Gauge`'s normals within its rim margin), R the
+Oren-Nayar factor of the sphere's roughness sigma (1 for a Lambertian sphere,
+sigma 0; :func:`colorps.finishes.oren_nayar_factor`). Each image's light is
+first the least-squares fit of the bands' sum that
 :func:`colorps.gauge_check.lambertian_fit` makes (the fit by which colorps
-checks that gauge images show a lit sphere), on the pixels it lights at a
-cosine of at least its LIT_FRACTION (the terminator, where a real finish and
-the light's size depart from max(n . l, 0) most, is left out). Each band's
-intensity is then E_b = (sum I_b n . l) / (a_b sum (n . l)^2) over the same
-pixels.
+checks that gauge images show a lit sphere, linear in sum_b a_b E_b l), on the
+pixels it lights at a cosine of at least its LIT_FRACTION (the terminator,
+where a real finish and the light's size depart from the model most, is left
+out). Real matte paint is rough: a rough sphere is brighter towards the view
+than the cosine, and the Lambertian fit tilts each direction to explain it. So
+every roughness of ROUGHNESS_GRID is tried, one for all the images (the sphere
+has one finish), each direction refined under it by Gauss-Newton on the same
+pixels, and the roughness that explains the images best is kept
+(:attr:`MatteLight.roughness`). Each band's intensity is then
+E_b = (sum I_b S) / (a_b sum S^2) over the same pixels, S the fitted shading.
 
 This is what a capture with a gauge of another finish than the scene's needs:
 its lights, for a virtual gauge of the scene's own fitted finish (``colorps
-reconstruct --lights``). The fit assumes the sphere is Lambertian: a rough or
-glossy sphere biases the direction towards where its shading departs from the
-cosine, and :attr:`MatteLight.residual` (the fit's relative RMS residual) says
-how far it departs.
+reconstruct --lights``). A glossy sphere still biases the directions towards
+its highlights, and :attr:`MatteLight.residual` (the fit's relative RMS
+residual) says how far it departs.
 """
 
 from __future__ import annotations
@@ -26,8 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .brdf import ROUGHNESS_GRID
 from .camera import Camera
 from .errors import InputError
+from .finishes import oren_nayar_factor
 from .gauge import Gauge, parse_albedo
 from .gauge_check import lambertian_fit
 from .lights import DIRECTION_HEADER, MIN_ELEVATION_Z, Lights, direction_columns
@@ -37,6 +44,11 @@ __all__ = ["MatteLight", "matte_sphere_lights", "matte_table"]
 # ---------------------------------------------------------------- tuning
 #: An image needs this many lit pixels on the sphere.
 MIN_LIT_PIXELS = 30
+#: Gauss-Newton steps of each direction at each roughness (the steps shrink
+#: below 1e-6 radians by the fourth on the test spheres).
+DIRECTION_STEPS = 6
+#: Lit pixels of an image its rough fits use at most (a fixed sample).
+ROUGH_FIT_PIXELS = 4000
 
 
 @dataclass(frozen=True)
@@ -52,14 +64,18 @@ class MatteLight:
     pixels : int
         Lit pixels the fit used.
     residual : float
-        RMS of the fit's residuals over the RMS of the values (0 on a Lambertian
+        RMS of the fit's residuals over the RMS of the values (0 on a matte
         sphere without noise; a few per cent on real matte paint).
+    roughness : float
+        The sphere's Oren-Nayar roughness the fit took (radians; 0: Lambertian),
+        the same for every image.
     """
 
     direction: np.ndarray
     intensity: np.ndarray
     pixels: int
     residual: float
+    roughness: float = 0.0
 
 
 def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0,
@@ -108,33 +124,106 @@ def matte_sphere_lights(stack, sphere: tuple[float, float, float], *, albedo=1.0
     if clip_level is not None:
         values = np.where((values < clip_level).all(axis=2, keepdims=True), values, np.nan)
     normals = gauge.normals[gauge.mask]
+    views = None
+    if camera is not None:  # towards the camera, along each pixel's ray
+        ys, xs = np.nonzero(gauge.mask)
+        views = -camera.rays(xs, ys, gauge.mask.shape)
     vectors, lit = lambertian_fit(values.sum(axis=2), normals)
+    for k, name in enumerate(names):
+        if lit[k].sum() < MIN_LIT_PIXELS:
+            raise InputError(f"{name}: only {int(lit[k].sum())} lit pixels on the matte "
+                             f"sphere (need {MIN_LIT_PIXELS}); is the light on, the sphere "
+                             "in the picture and not saturated?")
+    directions, roughness = _rough_fit(values.sum(axis=2), normals, views, vectors, lit)
     albedo = parse_albedo(albedo, images.shape[3])
-    found = [_light(values[k, lit[k]], normals[lit[k]], vectors[k], albedo, name)
+    found = [_light(values[k, lit[k]], _shading(normals[lit[k]], directions[k], roughness,
+                                                None if views is None else views[lit[k]]),
+                    directions[k], albedo, name, roughness)
              for k, name in enumerate(names)]
     lights = Lights(np.array([f.direction for f in found]),
                     np.array([f.intensity for f in found]), names=tuple(names))
     return lights, found
 
 
-def _light(shown: np.ndarray, normals: np.ndarray, vector: np.ndarray, albedo: np.ndarray,
-           name: str) -> MatteLight:
-    """One image's light from its (P, c) lit values at their (P, 3) normals and the
-    fitted vector of the bands' sum."""
-    if len(shown) < MIN_LIT_PIXELS:
-        raise InputError(f"{name}: only {len(shown)} lit pixels on the matte sphere (need "
-                         f"{MIN_LIT_PIXELS}); is the light on, the sphere in the picture "
-                         "and not saturated?")
-    direction = vector / np.linalg.norm(vector)
+def _shading(normals: np.ndarray, direction: np.ndarray, roughness: float,
+             views: np.ndarray | None) -> np.ndarray:
+    """(P,) the sphere's shading R(n, l) max(n . l, 0) for unit intensity and albedo."""
+    cosine = np.maximum(normals @ direction, 0.0)
+    if roughness == 0.0:
+        return cosine
+    return cosine * oren_nayar_factor(normals, direction, roughness, views)[0]
+
+
+def _rough_fit(sums: np.ndarray, normals: np.ndarray, views, vectors: np.ndarray,
+               lit: np.ndarray) -> tuple[np.ndarray, float]:
+    """The (m, 3) directions and the one roughness of ROUGHNESS_GRID that explain
+    the images' band sums (m, P) best on their lit pixels, each direction refined
+    from its Lambertian ``vectors`` (see the module docstring)."""
+    rng = np.random.default_rng(0)
+    picks = []
+    for row in lit:
+        pick = np.flatnonzero(row)
+        if len(pick) > ROUGH_FIT_PIXELS:
+            pick = np.sort(rng.choice(pick, ROUGH_FIT_PIXELS, replace=False))
+        picks.append(pick)
+    best = None
+    for roughness in ROUGHNESS_GRID:
+        directions, cost = [], 0.0
+        for k, pick in enumerate(picks):
+            direction, part = _refined_direction(
+                sums[k, pick], normals[pick], None if views is None else views[pick],
+                vectors[k] / np.linalg.norm(vectors[k]), roughness)
+            directions.append(direction)
+            cost += part
+        if best is None or cost < best[2]:
+            best = np.array(directions), roughness, cost
+    return best[0], best[1]
+
+
+def _refined_direction(shown: np.ndarray, normals: np.ndarray, views, direction: np.ndarray,
+                       roughness: float) -> tuple[np.ndarray, float]:
+    """One light's direction under ``roughness`` (Gauss-Newton on two tangent
+    angles, the intensity projected out) and its relative squared residual."""
+
+    def residual(d):
+        shade = _shading(normals, d, roughness, views)
+        return shown - shade * (shown @ shade) / max(shade @ shade, 1e-30)
+
+    def turned(d, du, dv):
+        helper = [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]
+        t1 = np.cross(d, helper)
+        t1 /= np.linalg.norm(t1)
+        moved = d + du * t1 + dv * np.cross(d, t1)
+        return moved / np.linalg.norm(moved)
+
+    eps = 1e-6
+    current = residual(direction)
+    cost = current @ current
+    for _ in range(DIRECTION_STEPS):
+        jacobian = np.stack([(residual(turned(direction, eps, 0.0)) - current) / eps,
+                             (residual(turned(direction, 0.0, eps)) - current) / eps], axis=1)
+        step = np.linalg.lstsq(jacobian, -current, rcond=None)[0]
+        trial = turned(direction, *step)
+        trial_residual = residual(trial)
+        if trial_residual @ trial_residual >= cost:
+            break
+        direction, current = trial, trial_residual
+        cost = current @ current
+    return direction, float(cost / max(shown @ shown, 1e-30))
+
+
+def _light(shown: np.ndarray, shade: np.ndarray, direction: np.ndarray, albedo: np.ndarray,
+           name: str, roughness: float) -> MatteLight:
+    """One image's light from its (P, c) lit values, their fitted (P,) shading for
+    unit intensity and its direction."""
     if not direction[2] >= MIN_ELEVATION_Z:
         raise InputError(f"{name}: the matte sphere's shading gives a light from behind "
                          f"the object (direction {np.round(direction, 3).tolist()})")
-    cosine = normals @ direction
-    intensity = (shown * cosine[:, None]).sum(axis=0) / (cosine ** 2).sum()
-    residual = np.sqrt(np.mean((shown - cosine[:, None] * intensity) ** 2)
+    intensity = (shown * shade[:, None]).sum(axis=0) / (shade ** 2).sum()
+    residual = np.sqrt(np.mean((shown - shade[:, None] * intensity) ** 2)
                        / np.mean(shown ** 2))
     return MatteLight(direction, np.maximum(intensity / albedo, 1e-12), len(shown),
-                      float(residual))
+                      float(residual), roughness)
 
 
 def matte_table(names, found: list[MatteLight]) -> list[str]:
@@ -144,4 +233,7 @@ def matte_table(names, found: list[MatteLight]) -> list[str]:
     for name, f in zip(names, found, strict=True):
         lines.append(f"{direction_columns(name, f.direction)} {f.pixels:6d} "
                      f"{f.residual:6.3f}  " + " ".join(f"{v:.4g}" for v in f.intensity))
+    roughness = found[0].roughness if found else 0.0
+    lines.append("the sphere shaded as Lambertian" if roughness == 0.0 else
+                 f"the sphere shaded as rough (Oren-Nayar sigma {roughness:.1f} rad)")
     return lines

@@ -186,8 +186,12 @@ def test_reconstruct_files_tiled_writes_the_untiled_results(messy, tmp_path):
     write_image(tmp_path / "mask.png", mask.astype(np.float32), dtype="uint8")
     files = CaptureFiles(str(tmp_path / "scene_*.exr"), gauge=str(tmp_path / "gauge_*.exr"),
                          sphere=(45, 45, 42), mask=tmp_path / "mask.png")
-    reconstruct_files(files, tmp_path / "whole", progress=False)
-    reconstruct_files(files, tmp_path / "tiled", options=Options(tile=16), progress=False)
+    # (An Oren-Nayar scene against its Lambertian gauge: a whole run would solve it
+    # again through the gauge's lights, which a tiled run leaves to the user.)
+    reconstruct_files(files, tmp_path / "whole", options=Options(finish_check=False),
+                      progress=False)
+    reconstruct_files(files, tmp_path / "tiled", options=Options(tile=16, finish_check=False),
+                      progress=False)
     for name in ("normal", "albedo", "quality", "uncertainty", "height", "lights"):
         whole = read_image(tmp_path / "whole" / f"{name}.exr")[0]
         tiled = read_image(tmp_path / "tiled" / f"{name}.exr")[0]
