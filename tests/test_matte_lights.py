@@ -69,20 +69,27 @@ def test_an_unlit_image_is_refused_by_name():
                                                               "gauge_02"])
 
 
+def smiley_capture(folder, roughness: float):
+    """A smiley of Oren-Nayar ``roughness`` (0: Lambertian) under 16 coloured
+    lights and its Lambertian gauge, written to ``folder`` with the mask;
+    returns the scene, the lighting and the lights' colours."""
+    lighting, colours = coloured_lights(16)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lighting, brdf="oren-nayar" if roughness else "lambert",
+                         roughness=roughness, noise=0.002, seed=2)
+    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
+        write_image(folder / f"scene_{k:02d}.exr", image)
+        write_image(folder / f"gauge_{k:02d}.exr", ball)
+    write_image(folder / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    return scene, lighting, colours
+
+
 @pytest.fixture(scope="module")
 def rough_capture(tmp_path_factory):
     """A rough (Oren-Nayar 0.3) smiley under 16 coloured lights, photographed with a
     Lambertian gauge: a gauge of another finish than the scene's."""
     folder = tmp_path_factory.mktemp("rough")
-    lighting, colours = coloured_lights(16)
-    scene = synth.smiley_surface(96)
-    stack = synth.render(scene, lighting, brdf="oren-nayar", roughness=0.3, noise=0.002,
-                         seed=2)
-    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
-        write_image(folder / f"scene_{k:02d}.exr", image)
-        write_image(folder / f"gauge_{k:02d}.exr", ball)
-    write_image(folder / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
-    return folder, scene, lighting, colours
+    return folder, *smiley_capture(folder, 0.3)
 
 
 def _error(folder, scene):
@@ -147,14 +154,7 @@ def test_a_gauge_a_little_off_the_scenes_finish_is_noticed(tmp_path, capsys):
     it matches the gauge at 1.8 noise units, and every normal is 2.4 degrees off
     through it. That is past FINISH_HINT_SCALE, the gauge's lights with the
     scene's own finish match far better, and the normals come out 0.16 off."""
-    lighting, _ = coloured_lights(16)
-    scene = synth.smiley_surface(96)
-    stack = synth.render(scene, lighting, brdf="oren-nayar", roughness=0.2, noise=0.002,
-                         seed=2)
-    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
-        write_image(tmp_path / f"scene_{k:02d}.exr", image)
-        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
-    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    scene, _, _ = smiley_capture(tmp_path, 0.2)
     gauge = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto"]
     assert _reconstruct(tmp_path, tmp_path / "gauge_only", *gauge, "--no-finish-check") == 0
     assert _reconstruct(tmp_path, tmp_path / "checked", *gauge) == 0
@@ -201,12 +201,7 @@ def test_lights_that_cannot_be_measured_leave_the_gauges_result(rough_capture, t
 def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
     """The same capture with a Lambertian scene: no word of another finish, and the
     gauge's result as it is."""
-    lighting, _ = coloured_lights(16)
-    scene = synth.smiley_surface(96)
-    stack = synth.render(scene, lighting, noise=0.002, seed=2)
-    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
-        write_image(tmp_path / f"scene_{k:02d}.exr", image)
-        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    smiley_capture(tmp_path, 0.0)
     assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
                  str(tmp_path / "gauge_*.exr"), "--sphere", "auto", "--quiet",
                  "--no-height", "--out", str(tmp_path / "out")]) == 0
