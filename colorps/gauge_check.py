@@ -67,9 +67,8 @@ MATTE_FIT = 0.1
 #: The solution with the gauge's lights and the scene's own finish is taken when
 #: its median residual (noise units) is under this fraction of the gauge's. On
 #: the gauges a little off the scene's finish it was 0.53-0.80 of it, and the
-#: normals 0.11-0.57 degrees off instead of 1.4-1.6 on four of six (strong
-#: bounced light 2.1 -> 2.0; a smooth gauge for an Oren-Nayar 0.2 scene, 2.6 ->
-#: 2.8); where the finishes match, 1.0-1.7 (docs/benchmarks.md).
+#: normals 0.11-0.57 degrees off instead of 1.4-2.6 on all six; where the
+#: finishes match, 1.0-1.7 (docs/benchmarks.md).
 CLEARLY_BETTER = 0.85
 
 
