@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 
 from ._blas import one_blas_thread
-from .brdf import BRDF, ROUGHNESS_GRID, fit_brdf
+from .brdf import BRDF, ROUGHNESS_GRID, _neighbours, fit_brdf
 from .camera import Camera
 from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
@@ -64,8 +64,9 @@ MIN_FIT_IMAGES = 6
 FIT_PIXELS = 1500
 #: After its rounds the fit is compared, on the same sample of the scene, with
 #: simpler finishes: its falloff set to Lambert's, and diffuse Oren-Nayar ones
-#: (Lambert's falloff, no highlight) of its roughness and the grid's next ones. The fit's own cost, over a sample at normals it refines, can settle
-#: where a darker falloff stands in for tilted normals; the whole match then
+#: (Lambert's falloff, no highlight) of its roughness and the grid's next ones.
+#: The fit's own cost, over a sample at normals it refines, can settle where a
+#: darker falloff stands in for tilted normals; the whole match then
 #: prefers the simpler finish (an Oren-Nayar 0.2 scene, 8-bit under 48 lights:
 #: fitted 0.95 noise units and 1.38 degrees, with Lambert's falloff 0.83 and
 #: 0.20, also without the highlight 0.82 and 0.11, the true finish's numbers).
@@ -282,17 +283,22 @@ def _simpler_finishes(brdf: BRDF) -> list[BRDF]:
     """The fitted finish and the simpler ones :func:`fit_scene_brdf` compares it
     with (SIMPLER_GAIN; not Lambert itself, which the kept fit already beat)."""
     flat = dataclasses.replace(brdf, falloff=BRDF.lambert().falloff)
-    plain = [BRDF(roughness=r) for r in ROUGHNESS_GRID if abs(r - brdf.roughness) < 0.15]
+    plain = [BRDF(roughness=r) for r in _neighbours(ROUGHNESS_GRID, brdf.roughness)]
     return list(dict.fromkeys(f for f in (brdf, flat, *plain) if not f.is_lambert))
+
+
+def _matched(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, mask,
+             radius: float):
+    """The scene matched against the gauge of ``radius`` rendered with ``brdf``."""
+    gauge = Gauge.virtual(lights, radius=radius, bands=data.shape[-1], brdf=brdf)
+    return reconstruct(data, gauge.stack, gauge, quick, mask=mask)
 
 
 def _match_residual(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, mask,
                     radius: float) -> float:
     """Median residual (noise units, before the run's model scale) of the scene
     matched against the gauge rendered with ``brdf``."""
-    gauge = Gauge.virtual(lights, radius=radius, bands=data.shape[-1], brdf=brdf)
-    return reconstruct(data, gauge.stack, gauge, quick, mask=mask).stats \
-        .residual_median_noise_units
+    return _matched(data, lights, brdf, quick, mask, radius).stats.residual_median_noise_units
 
 
 def _match_sample(data: np.ndarray, mask, rng: np.random.Generator,
@@ -314,9 +320,8 @@ def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, ma
     """Match the scene against the gauge rendered with ``brdf``; fit a finish to a
     sample of the solved pixels at their normals (``settle_rounds`` as
     :func:`colorps.brdf.fit_brdf` takes it). Returns it and what to record."""
-    _m, _, _, c = data.shape
-    gauge = Gauge.virtual(lights, radius=radius, bands=c, brdf=brdf)
-    result = reconstruct(data, gauge.stack, gauge, quick, mask=mask)
+    c = data.shape[-1]
+    result = _matched(data, lights, brdf, quick, mask, radius)
     ys, xs = np.nonzero(result.solved)
     if not len(ys):
         raise InputError("brdf fit: no scene pixel matched the virtual gauge; check "
