@@ -1,6 +1,5 @@
 """The ``colorps`` command line: parses arguments and calls the library."""
 
-
 from __future__ import annotations
 
 import argparse
@@ -168,8 +167,9 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-band-weights", dest="band_weights", action="store_false",
                         help="colour mode: weigh every band alike, however dark")
     parser.add_argument("--no-finish-check", dest="finish_check", action="store_false",
-                        help="keep the gauge's result even when the scene's finish looks "
-                             "another (see the user guide)")
+                        help="keep the gauge's result even where the finish looks another")
+    parser.add_argument("--no-interreflections", dest="interreflections", action="store_false",
+                        help="keep the light a concave object bounces onto itself")
     parser.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
                         help="do not re-solve shadowed or highlighted pixels from the "
                              "lights that reach them")

@@ -141,6 +141,11 @@ class Options:
         measured on the gauge and the scene's own fitted finish
         (:func:`colorps.virtual.with_gauge_lights`), and keep that when it
         matches clearly better (:func:`colorps.gauge_check.judge_finish`).
+    interreflections : bool
+        Files, untiled: where the solved object sees itself (a concave one),
+        take out the light its surfaces bounce onto each other, estimated from
+        the images and the solved shape, and solve again
+        (:func:`colorps.interreflection.without_interreflections`).
     tile : int or None
         Files only: process the scene in bands of this many rows, each read
         from the files when needed (:mod:`colorps.tiles`); the same maps as an
@@ -176,6 +181,7 @@ class Options:
     max_input_gib: float = 8.0
     brdf: Literal["fitted", "lambert"] = "fitted"
     finish_check: bool = True
+    interreflections: bool = True
     tile: int | None = None
     memory_limit_gib: float | Literal["auto"] | None = "auto"
 

@@ -36,6 +36,7 @@ from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
+from .interreflection import without_interreflections
 from .io import (
     check_decoded_size,
     check_stack_files,
@@ -159,11 +160,18 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                                                  (stacks.light_set, virtual, inputs.camera),
                                                  progress)
         _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+        result, solved_from, bounced = _without_interreflections(
+            result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress)
         if inputs.lights is None and run.options.finish_check and \
                 finish_differs(result.stats.model_scale, checked):
+            if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
+                solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
             result, run, virtual = _with_gauge_lights(result, stacks, gauge_stack, gauge, run,
-                                                      mask, inputs, plan, checked, progress)
+                                                      mask, inputs, checked, progress,
+                                                      solved_from)
+        del solved_from
         report = _report(inputs, stacks, run, plan, gauge, virtual, names)
+        report["interreflections"] = bounced
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
         report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
         report["run_seconds"] = clock  # taken when report.json is written, last
@@ -244,11 +252,13 @@ def _check_memory(stacks: _Stacks, inputs: CaptureFiles, options: Options,
                          "finish of a virtual-gauge run is fitted to the whole scene at once")
 
 
-def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: bool):
-    """The scene stack (left in its files for a tiled run) and its channel names."""
+def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: bool,
+                again: bool = False):
+    """The scene stack (left in its files for a tiled run) and its channel names;
+    ``again``: read before (what its files are was said then)."""
     if plan.rows is None:
         scene, names = read_stack(stacks.scene_paths, options.encoding, name="scene",
-                                  progress=progress)
+                                  progress=progress, warn_lossy=not again)
         check_contents(scene, stacks.scene_paths, "scene")
         return scene, names
     _m, h, _w, _c = stacks.shape
@@ -422,19 +432,35 @@ def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -
                      "--clip-level and --max-residual")
 
 
+def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge,
+                              run: Resolved, mask, plan: TilePlan, along_rays: bool,
+                              progress: bool):
+    """The result solved again without the light a concave object bounces onto
+    itself (:func:`interreflection.without_interreflections`, the scene read
+    again only then), the measurements it was solved from (None: as read) and
+    what was done, for report.json."""
+    if not run.options.interreflections or plan.rows is not None or along_rays:
+        why = ("--no-interreflections" if not run.options.interreflections else
+               "a tiled run" if plan.rows is not None else "matched along the camera's rays")
+        return result, None, dict(skipped=why)
+    return without_interreflections(
+        lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
+        lambda stack: reconstruct(stack, gauge_stack, gauge, run, mask=mask, progress=progress))
+
+
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
-                       mask, inputs: CaptureFiles, plan: TilePlan, checked: dict,
-                       progress: bool):
+                       mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
     """A run whose matte gauge explains its scene poorly, solved again with the
     gauge's lights and the scene's own finish (:func:`virtual.with_gauge_lights`)
     and kept if clearly better (:func:`gauge_check.judge_finish`, which records
-    it in ``checked``). Returns (result, settings, finish and its fits or None)."""
+    it in ``checked``). ``scene``: the measurements ``result`` was solved from
+    (None: a tiled run's, left in its files, not tried). Returns (result,
+    settings, finish and its fits or None)."""
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
     try:  # the gauge's lights may not be measurable (a small or one-sided sphere)
-        if plan.rows is None:
-            scene, _ = _read_scene(stacks, run.options, plan, progress)
+        if scene is not None:
             other, other_run, finish, _ = with_gauge_lights(
                 scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
                 camera=inputs.camera, progress=progress)

@@ -50,11 +50,12 @@ __all__ = [
 
 #: Names of the reflectance models :func:`render` knows.
 BRDFS = ("lambert", "oren-nayar")
-#: One-bounce interreflection (:func:`render`): hemisphere directions sampled
-#: for a pixel's sky visibility, and how far bounced light reaches (Gaussian
-#: sigma as a fraction of the image's larger side).
+#: Hemisphere directions sampled for a pixel's sky visibility.
 SKY_SAMPLES = 24
-BOUNCE_REACH = 0.04
+#: One-bounce interreflection (:func:`render`): cells it is gathered on, at most
+#: (4 times :data:`colorps.interreflection.BOUNCE_CELLS`, finer than the
+#: estimate tested against it).
+BOUNCE_CELLS = 16384
 
 
 @dataclass(frozen=True)
@@ -171,12 +172,12 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
         highlight of shininess 60): a finish a matte gauge does not share
         (:func:`highlight_maps`).
     interreflection : float, optional
-        Strength of a one-bounce interreflection (0: none; 1: the surface's own
-        albedo): each pixel also receives the light its surroundings reflect,
-        ``interreflection * albedo * (1 - V) * blur(direct)``, V the pixel's
-        :func:`sky_visibility` and ``blur(direct)`` the direct radiance around
-        it (Gaussian of BOUNCE_REACH times the image's larger side, over the
-        mask): light bounced inside folds, none on open, convex parts.
+        Strength of a one-bounce interreflection (0: none; 1: physical, a
+        matte surface's): each pixel also reflects the direct light of every
+        patch of the relief it sees, ``interreflection * albedo * sum(L_q
+        cos cos A_q / (pi r^2))`` (:mod:`colorps.bounce` on the true relief,
+        on up to BOUNCE_CELLS cells): light bounced inside folds, none on
+        open, convex parts.
 
     Returns
     -------
@@ -236,20 +237,15 @@ def sky_visibility(surface: SyntheticSurface, samples: int = SKY_SAMPLES) -> np.
 
 
 def _bounced(surface: SyntheticSurface, direct: np.ndarray) -> np.ndarray:
-    """The one-bounce term of :func:`render` (strength 1), (m, H, W, c)."""
-    from scipy.ndimage import gaussian_filter
+    """The one-bounce term of :func:`render` (strength 1), (m, H, W, c): the
+    direct light every other visible patch of the relief reflects, gathered
+    by form factors on the true relief (:mod:`colorps.bounce`)."""
+    from colorps.bounce import bounced_light, cell_grid, cell_heights, gather
 
-    hidden = 1.0 - sky_visibility(surface)
-    sigma = BOUNCE_REACH * max(surface.mask.shape)
-    inside = surface.mask.astype(np.float64)
-    weight = gaussian_filter(inside, sigma)
-    out = np.zeros_like(direct)
-    for k in range(direct.shape[0]):
-        for band in range(direct.shape[3]):
-            around = gaussian_filter(direct[k, ..., band], sigma) / np.maximum(weight, 1e-12)
-            out[k, ..., band] = np.where(surface.mask, surface.albedo[..., band] * hidden *
-                                         around, 0.0)
-    return out
+    grid = cell_grid(surface.normals, surface.mask, BOUNCE_CELLS)
+    height = cell_heights(grid, surface.height, surface.mask)
+    bounced = gather(grid, height, direct, surface.mask, surface.albedo)
+    return bounced_light(bounced, surface.albedo, surface.mask.shape).astype(direct.dtype)
 
 
 def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:

@@ -13,7 +13,8 @@ from pathlib import Path
 
 #: Public modules, in the order a reader meets them (docs/architecture.md).
 MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct",
-           "colorps.results", "colorps.matching", "colorps.shadows", "colorps.tables",
+           "colorps.results", "colorps.matching", "colorps.shadows", "colorps.interreflection",
+           "colorps.bounce", "colorps.tables",
            "colorps.reasons",
            "colorps.gauge", "colorps.gauge_check", "colorps.camera", "colorps.virtual", "colorps.brdf", "colorps.lights",
            "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate", "colorps.multigrid",

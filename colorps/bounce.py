@@ -1,0 +1,166 @@
+"""Light one patch of a matte surface sends another: the form factors' gather.
+
+A patch q of radiance L_q (the same towards every direction: a matte, or
+Lambertian, surface) and area A_q, seen from a patch p at distance r, gives p
+the irradiance ``L_q cos(theta_p) cos(theta_q) A_q / r^2``; p, of albedo rho,
+sends back rho / pi times its sum over the patches it sees. Here the patches are
+the cells of a coarse grid over the image (:func:`cell_grid`: at most so many
+cells, each the mean of its pixels), the relief is a height field seen
+orthographically (heights in pixels), a pair is hidden where the relief rises
+above the segment between them, and the sum runs over every pair of cells
+(:func:`colorps._bounce_kernels.gather`, numba, parallel over cells).
+
+:mod:`colorps.interreflection` gathers the light an object's observed images
+say it sends itself; :mod:`colorps.synth` renders a one-bounce interreflection
+from the direct light on the true relief.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from colorps import _bounce_kernels
+
+__all__ = ["BounceGrid", "CellGrid", "bounced_light", "cell_grid", "cell_heights", "gather"]
+
+
+@dataclass(frozen=True)
+class CellGrid:
+    """The pixels of a surface grouped into square cells.
+
+    Attributes
+    ----------
+    step : int
+        Pixels per cell side.
+    count : (h, w) ndarray of float64
+        The surface's pixels in each cell.
+    valid : (h, w) ndarray of bool
+        Cells at least half covered by the surface, facing the camera.
+    normals : (h, w, 3) ndarray of float64
+        Each cell's mean normal, unit length.
+    area : (h, w) ndarray of float64
+        Each cell's surface area, in cells (a pixel of normal n covers 1 / n_z
+        of a pixel's area; n_z held above 0.05).
+    """
+
+    step: int
+    count: np.ndarray
+    valid: np.ndarray
+    normals: np.ndarray
+    area: np.ndarray
+
+    def means(self, values: np.ndarray, where: np.ndarray) -> np.ndarray:
+        """Each cell's mean of ``values`` (first two axes the image's) over ``where``."""
+        inside = where.reshape(where.shape + (1,) * (values.ndim - 2))
+        total = _cell_sum(np.where(inside, values, 0.0), self.step)
+        return total / np.maximum(self.count, 1.0).reshape(self.count.shape +
+                                                           (1,) * (values.ndim - 2))
+
+
+@dataclass(frozen=True)
+class BounceGrid:
+    """The light a surface sends itself, on a :class:`CellGrid`.
+
+    Attributes
+    ----------
+    step : int
+        Pixels per cell side.
+    valid : (h, w) ndarray of bool
+    irradiance : (h, w, m, c) ndarray of float64
+        Light each cell receives from the rest of the surface, divided by pi
+        (what a white matte cell sends back), per image and band.
+    share : (h, w) ndarray of float64
+        The bounced light's share of each valid cell's measurements: its mean
+        albedo times ``irradiance`` against its mean radiance, summed over
+        images and bands.
+    """
+
+    step: int
+    valid: np.ndarray
+    irradiance: np.ndarray
+    share: np.ndarray
+
+
+def cell_grid(normals: np.ndarray, surface: np.ndarray, cells: int) -> CellGrid:
+    """Group the pixels of ``surface`` ((H, W) bool; ``normals`` (H, W, 3), x right,
+    y up, z towards the camera) into at most about ``cells`` square cells."""
+    step = max(1, int(np.ceil(np.sqrt(max(int(surface.sum()), 1) / cells))))
+    count = _cell_sum(surface.astype(np.float64), step)
+    mean_normals = _cell_sum(np.where(surface[..., None], normals, 0.0), step)
+    mean_normals /= np.maximum(np.linalg.norm(mean_normals, axis=-1, keepdims=True), 1e-12)
+    area = _cell_sum(np.where(surface, 1.0 / np.maximum(normals[..., 2], 0.05), 0.0), step)
+    valid = (count >= 0.5 * step * step) & (mean_normals[..., 2] > 0.0)
+    return CellGrid(step, count, valid, mean_normals, area / (step * step))
+
+
+def cell_heights(grid: CellGrid, height: np.ndarray, surface: np.ndarray) -> np.ndarray:
+    """The cells' mean height, in cells, of a relief ``height`` in pixels."""
+    return grid.means(height, surface) / grid.step
+
+
+def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.ndarray,
+           albedo: np.ndarray) -> BounceGrid:
+    """Gather the light the surface sends itself.
+
+    Parameters
+    ----------
+    grid : CellGrid
+    height : (h, w) ndarray
+        The cells' relief, in cells.
+    scene : (m, H, W, c) ndarray
+        Linear radiance of each pixel (as photographed: a matte surface sends
+        the same towards every direction), per image and band.
+    surface : (H, W) ndarray of bool
+        The pixels ``grid`` was made of.
+    albedo : (H, W, c) ndarray
+        Each pixel's albedo (NaN: none); only for the :attr:`BounceGrid.share`.
+
+    Returns
+    -------
+    BounceGrid
+    """
+    m, h, w, c = scene.shape
+    radiance = grid.means(np.moveaxis(scene, 0, 2).reshape(h, w, m * c), surface)
+    irradiance = np.zeros_like(radiance)
+    _bounce_kernels.gather(_bounce_kernels.Cells(
+        np.asarray(height, dtype=np.float64), grid.normals, grid.area, radiance, grid.valid),
+        irradiance)
+    irradiance = irradiance.reshape(*grid.valid.shape, m, c)
+    reflected = irradiance * grid.means(np.nan_to_num(albedo), surface)[:, :, None]
+    share = reflected.sum(axis=(2, 3)) / np.maximum(radiance.sum(axis=2), 1e-12)
+    return BounceGrid(grid.step, grid.valid, irradiance, np.where(grid.valid, share, 0.0))
+
+
+def bounced_light(grid: BounceGrid, albedo: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The light each pixel reflects from the rest of the surface, (m, H, W, c) float32.
+
+    The grid's irradiance, interpolated bilinearly between valid cell centres,
+    times each pixel's albedo (0 where it has none).
+    """
+    from scipy.ndimage import map_coordinates
+
+    h, w = shape
+    rows = (np.arange(h) + 0.5) / grid.step - 0.5
+    cols = (np.arange(w) + 0.5) / grid.step - 0.5
+    where = np.meshgrid(rows, cols, indexing="ij")
+    weight = map_coordinates(grid.valid.astype(np.float64), where, order=1, mode="nearest")
+    m, c = grid.irradiance.shape[2:]
+    out = np.zeros((m, h, w, c), dtype=np.float32)
+    reflect = np.nan_to_num(albedo).astype(np.float32)
+    for i in range(m):
+        for k in range(c):
+            spread = map_coordinates(grid.irradiance[:, :, i, k] * grid.valid, where, order=1,
+                                     mode="nearest")
+            out[i, ..., k] = reflect[..., k] * (spread / np.maximum(weight, 1e-12))
+    return out
+
+
+def _cell_sum(values: np.ndarray, step: int) -> np.ndarray:
+    """Sums over ``step`` x ``step`` blocks of the first two axes (zero-padded)."""
+    h, w = values.shape[:2]
+    rows, cols = -(-h // step), -(-w // step)
+    pad = [(0, rows * step - h), (0, cols * step - w)] + [(0, 0)] * (values.ndim - 2)
+    blocks = np.pad(values, pad).reshape(rows, step, cols, step, *values.shape[2:])
+    return blocks.sum(axis=(1, 3))

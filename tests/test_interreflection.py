@@ -1,0 +1,158 @@
+"""Light a concave object bounces onto itself: gathered, fitted and taken out."""
+# The synthetic gauges below hold a spike or two of their noise, replaced with a
+# warning that is not what these tests are about.
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from colorps import Gauge, angular_error, reconstruct, synth
+from colorps.bounce import cell_grid, cell_heights, gather
+from colorps.cli import main
+from colorps.interreflection import BETTER_BY, sees_itself, without_interreflections
+from colorps.io import read_image, write_image
+from colorps.shapes import dome_lights, folds_surface
+
+pytestmark = pytest.mark.filterwarnings("ignore::colorps.errors.GaugeWarning")
+
+
+def _groove(n=48):
+    """A V-groove along y with 45-degree walls: heights (px) and unit normals."""
+    x = np.arange(n) - (n - 1) / 2
+    height = np.tile(np.abs(x), (n, 1))
+    normals = np.zeros((n, n, 3))
+    normals[..., 0] = -np.sign(x) / np.sqrt(2)
+    normals[..., 2] = 1 / np.sqrt(2)
+    return height, normals
+
+
+def _rays_seen(height, normals, radiance, y, x, rng, samples=20000):
+    """Mean radiance seen from pixel (y, x) over cosine-weighted rays marched
+    through the relief (bilinear) a quarter pixel at a time (an estimate of irradiance / pi
+    independent of the form factors): rays that leave the image see nothing."""
+    from scipy.ndimage import map_coordinates
+
+    n = height.shape[0]
+    normal = normals[y, x]
+    u, v = rng.random(samples), rng.random(samples)
+    local = np.stack([np.sqrt(u) * np.cos(2 * np.pi * v), np.sqrt(u) * np.sin(2 * np.pi * v),
+                      np.sqrt(1 - u)], axis=-1)
+    side = np.cross(normal, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    rays = local[:, :1] * side + local[:, 1:2] * np.cross(normal, side) + local[:, 2:] * normal
+    step = rays / np.abs(rays[:, :2]).max(axis=1, keepdims=True) * 0.25 * [1, -1, 1]
+    seen = np.zeros(samples)
+    flying = np.ones(samples, dtype=bool)
+    for s in range(3, 4 * n):
+        at = np.array([x, y, height[y, x]]) + s * step
+        flying &= (at[:, :2] > -0.5).all(axis=1) & (at[:, :2] < n - 0.5).all(axis=1)
+        below = at[:, 2] < map_coordinates(height, [at[:, 1], at[:, 0]], order=1,
+                                           mode="nearest")
+        col, row = np.rint(at[:, 0]).astype(int), np.rint(at[:, 1]).astype(int)
+        col, row = np.clip(col, 0, n - 1), np.clip(row, 0, n - 1)
+        hit = flying & below
+        seen[hit] = radiance[row[hit], col[hit]]
+        flying &= ~hit
+    return seen.mean()
+
+
+def test_gathered_light_in_a_groove_is_what_rays_through_it_see():
+    height, normals = _groove()
+    rng = np.random.default_rng(0)
+    radiance = rng.uniform(0.5, 1.0, height.shape)
+    surface = np.ones(height.shape, dtype=bool)
+    cells = cell_grid(normals, surface, height.size)
+    grid = gather(cells, cell_heights(cells, height, surface), radiance[None, ..., None],
+                  surface, np.ones((*height.shape, 1)))
+    assert grid.step == 1
+    for y, x in [(24, 30), (24, 34), (10, 16), (40, 38)]:
+        expected = _rays_seen(height, normals, radiance, y, x, rng)
+        assert grid.irradiance[y, x, 0, 0] == pytest.approx(expected, rel=0.07)
+
+
+def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
+    sphere = synth.sphere_surface(64, 28)
+    assert sees_itself(sphere.normals, sphere.mask) == 0.0
+
+    def unread():
+        raise AssertionError("the scene is read again only for a concave object")
+
+    first = SimpleNamespace(normals=sphere.normals, solved=sphere.mask,
+                            stats=SimpleNamespace(residual_median_noise_units=1.0))
+    result, solved_from, record = without_interreflections(unread, first, None)
+    assert result is first and solved_from is None and record["passes"] == 0
+
+
+@pytest.fixture(scope="module")
+def bounced_folds():
+    """Deep folds (96 px, 24 dome lights, cast shadows) with a physical one-bounce
+    interreflection, and a grey (0.5) Lambertian gauge stated as white: the
+    bounced light's scale is then 0.5."""
+    lights = dome_lights(24)
+    scene = folds_surface(96)
+    stack = synth.render(scene, lights, noise=0.002, cast_shadows=True, interreflection=1.0)
+    size = 70
+    centre = (size - 1) / 2
+    gauge = Gauge.from_sphere((size, size), centre, centre, 30)
+    ball = synth.SyntheticSurface(normals=np.where(gauge.mask[..., None], gauge.normals, 0.0),
+                                  mask=gauge.mask, albedo=np.full((size, size, 3), 0.5),
+                                  height=np.zeros((size, size)))
+    return scene, stack, synth.render(ball, lights, noise=0.002, seed=2), gauge
+
+
+def _mean_error(result, scene):
+    return float(angular_error(result.normals[scene.mask], scene.normals[scene.mask]).mean())
+
+
+def test_bounced_light_is_taken_out_of_folds(bounced_folds):
+    scene, stack, gauge_stack, gauge = bounced_folds
+
+    def solve(images):
+        return reconstruct(images, gauge_stack, gauge, mask=scene.mask)
+
+    first = solve(stack)
+    result, solved_from, record = without_interreflections(lambda: stack, first, solve)
+    assert _mean_error(first, scene) > 3.0
+    assert _mean_error(result, scene) < 0.5 * _mean_error(first, scene)
+    assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
+    assert record["residuals"][-1] < record["residuals"][0]
+    assert solved_from.shape == stack.shape and (solved_from <= stack).all()
+
+
+def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
+    """Taking out light that is not there (a glossy scene's highlights taken as
+    light sent to its neighbours) makes the match worse: the first result stays."""
+    scene, stack, gauge_stack, gauge = bounced_folds
+    first = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    barely = first.stats.residual_median_noise_units * BETTER_BY * 1.01
+
+    def worse(images):
+        return SimpleNamespace(stats=SimpleNamespace(residual_median_noise_units=barely))
+
+    result, solved_from, record = without_interreflections(lambda: stack, first, worse)
+    assert result is first and solved_from is None and record["passes"] == 0
+    assert len(record["residuals"]) == 2
+
+
+def test_reconstruct_takes_out_bounced_light_and_says_so(bounced_folds, tmp_path):
+    scene, stack, gauge_stack, _gauge = bounced_folds
+    for k, (image, ball) in enumerate(zip(stack, gauge_stack)):
+        write_image(tmp_path / f"scene_{k:02d}.exr", image)
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    errors, records = {}, {}
+    for name, extra in [("kept", ["--no-interreflections"]), ("out", [])]:
+        assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
+                     str(tmp_path / "gauge_*.exr"), "--sphere", ",".join(map(str, _gauge.sphere)),
+                     "--mask", str(tmp_path / "mask.png"),
+                     "--out", str(tmp_path / name), "--quiet", "--no-height", "--no-viewer",
+                     *extra]) == 0
+        normals = read_image(tmp_path / name / "normal.exr")[0]
+        errors[name] = float(np.nanmean(angular_error(normals[scene.mask],
+                                                      scene.normals[scene.mask])))
+        records[name] = json.loads((tmp_path / name / "report.json").read_text())
+    assert records["kept"]["interreflections"] == {"skipped": "--no-interreflections"}
+    assert records["out"]["interreflections"]["passes"] >= 1
+    assert errors["out"] < 0.5 * errors["kept"]
