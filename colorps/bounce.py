@@ -23,7 +23,8 @@ import numpy as np
 
 from colorps import _bounce_kernels
 
-__all__ = ["BounceGrid", "CellGrid", "bounced_light", "cell_grid", "cell_heights", "gather"]
+__all__ = ["BounceGrid", "CellGrid", "bounced_light", "cell_grid", "cell_heights", "gather",
+           "light_at"]
 
 
 @dataclass(frozen=True)
@@ -121,8 +122,11 @@ def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.nd
     -------
     BounceGrid
     """
-    m, h, w, c = scene.shape
-    radiance = grid.means(np.moveaxis(scene, 0, 2).reshape(h, w, m * c), surface)
+    m, c = scene.shape[0], scene.shape[3]
+    radiance = np.empty((*grid.valid.shape, m, c))
+    for i in range(m):  # one image at a time: no stack-sized temporaries
+        radiance[:, :, i] = grid.means(scene[i], surface)
+    radiance = radiance.reshape(*grid.valid.shape, m * c)
     irradiance = np.zeros_like(radiance)
     _bounce_kernels.gather(_bounce_kernels.Cells(
         np.asarray(height, dtype=np.float64), grid.normals, grid.area, radiance, grid.valid),
@@ -136,25 +140,58 @@ def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.nd
 def bounced_light(grid: BounceGrid, albedo: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The light each pixel reflects from the rest of the surface, (m, H, W, c) float32.
 
-    The grid's irradiance, interpolated bilinearly between valid cell centres,
-    times each pixel's albedo (0 where it has none).
+    The grid's irradiance, interpolated bilinearly between valid cell centres
+    (beyond the outer centres: the nearest), times each pixel's albedo (0
+    where it has none).
     """
-    from scipy.ndimage import map_coordinates
+    rows = _interpolation(shape[0], grid.step, grid.valid.shape[0])
+    cols = _interpolation(shape[1], grid.step, grid.valid.shape[1]).T
 
-    h, w = shape
-    rows = (np.arange(h) + 0.5) / grid.step - 0.5
-    cols = (np.arange(w) + 0.5) / grid.step - 0.5
-    where = np.meshgrid(rows, cols, indexing="ij")
-    weight = map_coordinates(grid.valid.astype(np.float64), where, order=1, mode="nearest")
+    def spread(cell_map: np.ndarray) -> np.ndarray:  # (h, w) -> (H, W), by two products
+        return rows @ cell_map.astype(np.float32) @ cols
+
+    weight = np.maximum(spread(grid.valid), 1e-12)
     m, c = grid.irradiance.shape[2:]
-    out = np.zeros((m, h, w, c), dtype=np.float32)
-    reflect = np.nan_to_num(albedo).astype(np.float32)
+    out = np.empty((m, *shape, c), dtype=np.float32)
+    reflect = np.nan_to_num(albedo).astype(np.float32) / weight[..., None]
     for i in range(m):
         for k in range(c):
-            spread = map_coordinates(grid.irradiance[:, :, i, k] * grid.valid, where, order=1,
-                                     mode="nearest")
-            out[i, ..., k] = reflect[..., k] * (spread / np.maximum(weight, 1e-12))
+            out[i, ..., k] = spread(grid.irradiance[:, :, i, k] * grid.valid) * reflect[..., k]
     return out
+
+
+def light_at(grid: BounceGrid, albedo: np.ndarray, ys: np.ndarray, xs: np.ndarray
+             ) -> np.ndarray:
+    """:func:`bounced_light` at pixels (``ys``, ``xs``) only: (m, n, c) float32."""
+    y0, y1, fy = _neighbours(ys, grid.step, grid.valid.shape[0])
+    x0, x1, fx = _neighbours(xs, grid.step, grid.valid.shape[1])
+    total = np.zeros((len(ys), *grid.irradiance.shape[2:]))
+    weight = np.zeros(len(ys))
+    for rows, across in ((y0, 1 - fy), (y1, fy)):
+        for cols, along in ((x0, 1 - fx), (x1, fx)):
+            share = across * along * grid.valid[rows, cols]
+            total += share[:, None, None] * grid.irradiance[rows, cols]
+            weight += share
+    reflect = np.nan_to_num(albedo[ys, xs]) / np.maximum(weight, 1e-12)[:, None]
+    return np.moveaxis(total * reflect[:, None, :], 1, 0).astype(np.float32)
+
+
+def _neighbours(pixels: np.ndarray, step: int, cells: int):
+    """The cells whose centres bracket each pixel (lower, upper) and the upper's
+    linear weight; outside the outer centres the nearest, weight 1."""
+    at = np.clip((np.asarray(pixels) + 0.5) / step - 0.5, 0.0, cells - 1)
+    lower = np.floor(at).astype(np.intp)
+    return lower, np.minimum(lower + 1, cells - 1), at - lower
+
+
+def _interpolation(pixels: int, step: int, cells: int) -> np.ndarray:
+    """(pixels, cells) float32: each pixel's linear weights of the cells of
+    :func:`_neighbours`."""
+    lower, upper, frac = _neighbours(np.arange(pixels), step, cells)
+    weights = np.zeros((pixels, cells), dtype=np.float32)
+    np.add.at(weights, (np.arange(pixels), lower), 1.0 - frac)
+    np.add.at(weights, (np.arange(pixels), upper), frac)
+    return weights
 
 
 def _cell_sum(values: np.ndarray, step: int) -> np.ndarray:

@@ -166,12 +166,12 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                 finish_differs(result.stats.model_scale, checked):
             if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
                 solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
-            result, run, virtual = _with_gauge_lights(result, stacks, gauge_stack, gauge, run,
-                                                      mask, inputs, checked, progress,
-                                                      solved_from)
+            result, run, virtual = _with_gauge_lights(
+                result, stacks, gauge_stack, gauge, run, mask, inputs, checked, progress,
+                solved_from)
         del solved_from
-        report = _report(inputs, stacks, run, plan, gauge, virtual, names)
-        report["interreflections"] = bounced
+        report = _report(inputs, stacks, run, plan, gauge, virtual, names) | dict(
+            interreflections=bounced)
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
         report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
         report["run_seconds"] = clock  # taken when report.json is written, last
@@ -254,8 +254,7 @@ def _check_memory(stacks: _Stacks, inputs: CaptureFiles, options: Options,
 
 def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: bool,
                 again: bool = False):
-    """The scene stack (left in its files for a tiled run) and its channel names;
-    ``again``: read before (what its files are was said then)."""
+    """The scene stack (in its files if tiled), its channel names; ``again``: read before."""
     if plan.rows is None:
         scene, names = read_stack(stacks.scene_paths, options.encoding, name="scene",
                                   progress=progress, warn_lossy=not again)
@@ -435,17 +434,18 @@ def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -
 def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge,
                               run: Resolved, mask, plan: TilePlan, along_rays: bool,
                               progress: bool):
-    """The result solved again without the light a concave object bounces onto
-    itself (:func:`interreflection.without_interreflections`, the scene read
-    again only then), the measurements it was solved from (None: as read) and
-    what was done, for report.json."""
+    """The result solved again without the light a concave object bounces onto itself
+    (:func:`interreflection.without_interreflections`, the scene read again only
+    then), the measurements it was solved from (None: as read), report.json's record."""
     if not run.options.interreflections or plan.rows is not None or along_rays:
         why = ("--no-interreflections" if not run.options.interreflections else
                "a tiled run" if plan.rows is not None else "matched along the camera's rays")
         return result, None, dict(skipped=why)
     return without_interreflections(
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
-        lambda stack: reconstruct(stack, gauge_stack, gauge, run, mask=mask, progress=progress))
+        lambda stack, pixels, scale: reconstruct(
+            stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
+            mask=mask if pixels is None else pixels))
 
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
