@@ -8,7 +8,8 @@ grooves up to 0.35 radii deep) under a :func:`colorps.shapes.dome_lights` dome
 Variants: 32 and 96 lights; Oren-Nayar (rough) scene and gauge; a scene of a
 slightly different finish than the gauge (Oren-Nayar sigma 0.3 scene, Lambertian
 gauge); 8-bit sRGB files (quantised as a camera would store them); a one-bounce
-interreflection in the folds (``synth.render(interreflection=0.5)``); a gauge seen
+interreflection in the folds (``synth.render(interreflection=1.0)``: physical,
+the direct light of every patch seen, by form factors); a gauge seen
 through a lens off the optical axis (pinhole, focal length 6 gauge diameters,
 the sphere 0.8 diameters off the axis: 7.6 degrees), read with the camera (and,
 in the next row, without it); a white GGX coat (alpha 0.3, the microfacet lobe
@@ -23,10 +24,13 @@ For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
 
 * **gauge**: ``colorps.reconstruct`` with the rendered gauge, default options
-  (its rim margin measured as ``colorps reconstruct`` measures it);
+  (its rim margin measured as ``colorps reconstruct`` measures it), then the
+  light the folds bounce onto themselves taken out as ``colorps reconstruct``
+  does (:func:`colorps.interreflection.without_interreflections`; for the
+  interreflection set a row more without it);
 * **virtual**: the gauge rendered under the calibrated lights with the finish
   fitted to the scene (:func:`colorps.virtual.virtual_gauge`, what ``--lights``
-  does);
+  does), the bounced light taken out likewise and the finish then fitted again;
 * **least squares**: Woodham's Lambertian photometric stereo on every light
   (the bands' mean), every pixel solved;
 
@@ -56,10 +60,11 @@ from colorps import Gauge, Lights, Options, angular_error, reconstruct, synth
 from colorps.camera import Camera
 from colorps.finishes import Gloss
 from colorps.gauge import rim_margin
+from colorps.interreflection import without_interreflections
 from colorps.matte_lights import matte_sphere_lights
 from colorps.resolve import StackModel, resolve
 from colorps.shapes import dome_lights, folds_surface
-from colorps.virtual import virtual_gauge
+from colorps.virtual import virtual_gauge, with_own_finish
 
 NOISE = 0.003
 #: Roughness of the glossy sets' GGX coat (a renderer's roughness 0.55).
@@ -142,9 +147,24 @@ def least_squares(stack, directions, mask) -> np.ndarray:
     return normals
 
 
+def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask):
+    """``reconstruct``, then the light a concave object bounces onto itself taken
+    out (:func:`colorps.interreflection.without_interreflections`), as
+    ``colorps reconstruct`` does by default: the result and the measurements it
+    was solved from (None: ``stack``)."""
+    def solve(images, pixels=None, model_scale=None):
+        return reconstruct(images, gauge_stack, gauge, settings, model_scale=model_scale,
+                           mask=mask if pixels is None else pixels)
+
+    return without_interreflections(lambda: stack, solve(stack), solve)[:2]
+
+
 def run_virtual(stack, lights: Lights, mask, settings=None):
     gauge, run, _, _ = virtual_gauge(stack, lights, settings or Options(), mask=mask)
-    return reconstruct(stack, gauge.stack, gauge, run, mask=mask)
+    result, corrected = solved_as_colorps_does(stack, gauge.stack, gauge, run, mask)
+    if corrected is None:
+        return result
+    return with_own_finish(corrected, lights, run, mask=mask)[0]  # fitted again without it
 
 
 def coverage(result, truth, mask) -> float:
@@ -180,8 +200,8 @@ def main(argv=None) -> None:
              "lambert", True, {}),
             ("32 lights, 8-bit sRGB, rough scene (0.3), gauge a little smoother (0.2)", 32,
              "oren-nayar", "oren-nayar", True, {"gauge_roughness": 0.2}),
-            ("32 lights, interreflection 0.5", 32, "lambert", "lambert", False,
-             {"interreflection": 0.5}),
+            ("32 lights, one-bounce interreflection (physical)", 32, "lambert", "lambert",
+             False, {"interreflection": 1.0}),
             ("32 lights, perspective gauge, with --camera", 32, "lambert", "lambert", False,
              {"perspective": True}),
             ("32 lights, glossy (GGX coat F0 0.5) scene and gauge", 32, "lambert", "lambert",
@@ -202,8 +222,14 @@ def main(argv=None) -> None:
         mask = scene.mask
         t0 = time.perf_counter()
         clip = {"clip_level": 1.0} if "gauge_exposure" in extra else {}
-        result = reconstruct(stack, gauge_stack, gauge, mask=mask, **clip)
+        result = solved_as_colorps_does(stack, gauge_stack, gauge, Options(**clip), mask)[0]
         seconds = time.perf_counter() - t0
+        if extra.get("interreflection"):  # the bounced light left in
+            kept = reconstruct(stack, gauge_stack, gauge, mask=mask, **clip)
+            mean, median, solved = scores(kept.normals, kept.solved, scene.normals, mask)
+            print(f"| (the same, --no-interreflections) | {mean:.2f} / {median:.2f} / "
+                  f"{solved:.2%} | | | {facets(kept.normals, kept.solved & mask):.2%} | "
+                  f"{coverage(kept, scene.normals, mask):.0%} | |", flush=True)
         plain = None
         if extra.get("perspective"):  # the same images, the gauge read orthographically
             flat = Gauge.from_sphere(gauge.mask.shape, *gauge.sphere, rim_margin=gauge.rim_margin)

@@ -17,9 +17,10 @@ from .camera import read_camera
 from .errors import ColorPSError, InputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 from .inputs import CaptureFiles
+from .light_files import calibrate_lights_files
 from .memory import AUTO_MEMORY_FRACTION
 from .options import FLOAT_DARK_LEVEL, NORMAL_CONVENTIONS, Options
-from .pipeline import calibrate_lights_files, integrate_file, reconstruct_files
+from .pipeline import integrate_file, reconstruct_files
 from .relight import FINISHES, RELIT_FORMATS
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
@@ -32,8 +33,7 @@ class _FORMATTER(argparse.HelpFormatter):
     def _get_help_string(self, action):
         text = action.help or ""
         # (A --no-... flag's default True only means "not given": not shown.)
-        if "default" not in text and action.default not in (None, False, True,
-                                                            argparse.SUPPRESS):
+        if "default" not in text and action.default not in (None, False, True, argparse.SUPPRESS):
             text += " (default: %(default)s)"
         return text
 

@@ -6,8 +6,11 @@ plan the run (:mod:`colorps.io`, :func:`colorps.memory.plan_tiles`), read the
 scene, resolve the settings against the files (:func:`colorps.resolve.resolve`),
 make the gauge (photographed: :meth:`colorps.Gauge.from_sphere`; rendered:
 :func:`colorps.virtual.virtual_gauge`), match (:func:`colorps.reconstruct`, or
-:func:`colorps.tiles.reconstruct_tiled`), integrate the height
-(:func:`colorps.integrate`) while the maps are written
+:func:`colorps.tiles.reconstruct_tiled`), take out the light a concave object
+bounces onto itself (:func:`colorps.interreflection.without_interreflections`;
+a rendered gauge's finish fitted again without it), try the gauge's lights when
+the scene's finish looks another (:func:`colorps.virtual.with_gauge_lights`),
+integrate the height (:func:`colorps.integrate`) while the maps are written
 (:func:`colorps.outputs.save_reconstruction`). Option values arrive converted
 (:class:`~colorps.Options`); the command line only parses arguments.
 """
@@ -17,19 +20,15 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from . import __version__
 from ._blas import one_blas_thread
-from .calibrate import calibrate_lights, highlight_table, sphere_from_mask
-from .camera import Camera
-from .errors import InputError, OutputError
+from .errors import InputError
 from .figures import overview_step
 from .gauge import Gauge, find_sphere, rim_margin
 from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
@@ -41,15 +40,13 @@ from .io import (
     check_decoded_size,
     check_stack_files,
     expand_paths,
-    input_levels,
     read_image,
     read_mask,
     read_stack,
     top_code,
     warn_lossy_stack,
 )
-from .lights import LIGHT_FORMATS, read_lights, write_intensities, write_lights
-from .matte_lights import matte_sphere_lights, matte_table
+from .lights import read_lights
 from .memory import TilePlan, plan_tiles, release_freed_memory
 from .options import Options
 from .outputs import (
@@ -65,9 +62,9 @@ from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock
 from .tiles import StackFiles, dask_client, reconstruct_tiled
-from .virtual import match_along_rays, virtual_gauge, with_gauge_lights
+from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
 
-__all__ = ["calibrate_lights_files", "integrate_file", "reconstruct_files"]
+__all__ = ["integrate_file", "reconstruct_files"]
 
 #: A normal map's finite pixels must be unit vectors within this (half-float
 #: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
@@ -162,6 +159,9 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
         result, solved_from, bounced = _without_interreflections(
             result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress)
+        if virtual is not None and solved_from is not None:  # its finish fitted again
+            result, run, virtual = with_own_finish(solved_from, stacks.light_set, run, mask=mask,
+                                                   radius=inputs.virtual_radius, progress=progress)
         if inputs.lights is None and run.options.finish_check and \
                 finish_differs(result.stats.model_scale, checked):
             if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
@@ -170,8 +170,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                 result, stacks, gauge_stack, gauge, run, mask, inputs, checked, progress,
                 solved_from)
         del solved_from
-        report = _report(inputs, stacks, run, plan, gauge, virtual, names) | dict(
-            interreflections=bounced)
+        report = _report(inputs, stacks, run, plan, gauge, virtual, names, bounced)
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
         report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
         report["run_seconds"] = clock  # taken when report.json is written, last
@@ -358,8 +357,8 @@ def _read_as_linear(scene, stacks: _Stacks, run: Resolved, progress: bool):
 
 
 def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan,
-            gauge: Gauge, virtual, names) -> dict:
-    """What report.json says of the run's inputs and settings."""
+            gauge: Gauge, virtual, names, interreflections: dict) -> dict:
+    """What report.json says of the run's inputs, settings and bounced light."""
     brdf, fits = virtual if virtual is not None else (None, None)
     clip, dark = run.gauge_levels
     return dict(
@@ -376,9 +375,8 @@ def _report(inputs: CaptureFiles, stacks: _Stacks, run: Resolved, plan: TilePlan
         mask=None if inputs.mask is None else str(inputs.mask), channels=names,
         options=run.options.as_dict(), memory_limit_gib_used=plan.limit_gib,
         tiled_because=plan.why,
-        exposure_scene_over_gauge=(None if stacks.exposures is None
-                                   else stacks.exposures.tolist()),
-        gauge_levels=dict(clip_level=clip, dark_level=dark),
+        exposure_scene_over_gauge=None if stacks.exposures is None else stacks.exposures.tolist(),
+        gauge_levels=dict(clip_level=clip, dark_level=dark), interreflections=interreflections,
         pairing=pairing_record(stacks.scene_paths, stacks.gauge_paths, stacks.light_set))
 
 
@@ -525,76 +523,3 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
     height = integrate(normals, mask, weights=weights, method=method)
     save_height(height, out, mesh=mesh, overwrite=overwrite)
     return height
-
-
-def calibrate_lights_files(image_patterns: str | Sequence[str],
-                           sphere: Literal["auto"] | tuple[float, float, float] | None, out, *,
-                           sphere_mask=None, matte: bool = False, encoding="auto",
-                           camera: Camera | None = None, albedo=1.0,
-                           overwrite: bool = False):
-    """Lights from a sphere's images, written as a light file.
-
-    Parameters
-    ----------
-    image_patterns : str or sequence of str
-        The sphere's images, one per light, in capture order.
-    sphere : "auto", (cx, cy, r) or None
-        The sphere's silhouette in pixels, or found with :func:`colorps.find_sphere`
-        on the images (it needs the sphere's disk brighter than the background);
-        None with ``sphere_mask``.
-    out : str or Path
-        ``.txt`` (one "x y z" per line), ``.lp`` (count, then "file x y z") or
-        ``.json`` (directions and intensities).
-    sphere_mask : str or Path, optional
-        A mask image of the sphere (non-zero on it), for a dark sphere that
-        ``"auto"`` cannot find (:func:`colorps.calibrate.sphere_from_mask`).
-    matte : bool, optional
-        A matte sphere (:func:`colorps.matte_lights.matte_sphere_lights`), not a
-        mirror's highlights; into a ``.txt`` or ``.lp`` file its intensities go
-        to ``<stem>_intensities.txt`` beside it.
-    camera : Camera, optional
-        With ``matte``: the pinhole camera the images were taken with (the
-        sphere's normals from the true rays). Default orthographic.
-    albedo : float or (c,) array_like, optional
-        With ``matte``: the sphere's albedo, one value or one per band (the
-        intensities are relative to it; default 1).
-
-    Returns
-    -------
-    (Lights, list of Highlight or MatteLight, (cx, cy, r), table lines, paths written)
-    """
-    out = Path(out)
-    if out.suffix.lower() not in LIGHT_FORMATS:
-        raise InputError(f"{out}: light files are {', '.join(LIGHT_FORMATS)}")
-    beside = matte and out.suffix.lower() != ".json"  # where the intensities go
-    targets = [out, out.with_name(f"{out.stem}_intensities.txt")] if beside else [out]
-    for target in (t for t in targets if t.exists() and not overwrite):
-        raise OutputError(f"{target}: already exists; use --overwrite to replace it")
-    if not out.parent.is_dir():
-        raise OutputError(f"{out.parent}: output folder does not exist")
-    what = "matte sphere" if matte else "mirror sphere"
-    if (camera is not None or np.any(np.asarray(albedo) != 1.0)) and not matte:
-        raise InputError("--camera and --albedo are for a matte sphere (--matte): a mirror "
-                         "sphere's highlights give directions only, read orthographically")
-    paths = expand_paths(image_patterns, name=what)
-    info = check_stack_files(paths, name=what)[0]
-    if (sphere is None) == (sphere_mask is None):
-        raise InputError(f"give the {what}'s circle (--sphere) or its mask "
-                         "(--sphere-mask), one of them")
-    stack, _ = read_stack(paths, encoding, name=what)
-    if sphere_mask is not None:
-        try:
-            found_sphere = sphere_from_mask(read_mask(sphere_mask, stack.shape[1:3]))
-        except InputError as exc:
-            raise InputError(f"{sphere_mask}: {exc}") from None
-    else:
-        found_sphere = find_sphere(stack, camera) if sphere == "auto" else tuple(sphere)
-    names = [p.name for p in paths]
-    fit, table = (matte_sphere_lights, matte_table) if matte else \
-        (calibrate_lights, highlight_table)
-    lights, found = fit(stack, found_sphere, clip_level=input_levels(info, encoding)[0],
-                        names=names, **({"camera": camera, "albedo": albedo} if matte else {}))
-    write_lights(lights, out)
-    if len(targets) > 1:
-        write_intensities(lights, targets[1])
-    return lights, found, found_sphere, table(names, found), targets

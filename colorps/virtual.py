@@ -156,11 +156,24 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
     lights)."""
     lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
                                     clip_level=run.gauge_levels[0], camera=camera)
+    return (*with_own_finish(scene, lights, run, mask=mask, radius=radius, camera=camera,
+                             progress=progress), lights)
+
+
+def with_own_finish(scene: np.ndarray, lights: Lights, run: Resolved, *, mask=None,
+                    radius: float = DEFAULT_VIRTUAL_RADIUS, camera: Camera | None = None,
+                    progress: bool = False):
+    """The scene solved with a virtual gauge under ``lights`` of its own fitted
+    finish (:func:`virtual_gauge`, :func:`match_along_rays`): for another gauge's
+    lights, or for measurements whose bounced light was taken out
+    (:mod:`colorps.interreflection`: a finish fitted with it in takes some of
+    it for its falloff and highlight). Returns (the
+    :class:`~colorps.Reconstruction`, its settings, (the finish, its fits))."""
     virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
                                                   radius=radius, progress=progress)
     result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
                                  progress=progress)
-    return result, settings, (brdf, fits), lights
+    return result, settings, (brdf, fits)
 
 
 def match_along_rays(scene: np.ndarray, gauge: Gauge, run: Resolved, lights: Lights,

@@ -18,7 +18,7 @@ MODULES = ("colorps", "colorps.options", "colorps.resolve", "colorps.reconstruct
            "colorps.reasons",
            "colorps.gauge", "colorps.gauge_check", "colorps.camera", "colorps.virtual", "colorps.brdf", "colorps.lights",
            "colorps.signatures", "colorps.grid", "colorps.geometry", "colorps.integrate", "colorps.multigrid",
-           "colorps.io", "colorps.transfer", "colorps.formats", "colorps.inputs", "colorps.hygiene", "colorps.pairing", "colorps.outputs", "colorps.pipeline",
+           "colorps.io", "colorps.transfer", "colorps.formats", "colorps.inputs", "colorps.hygiene", "colorps.pairing", "colorps.outputs", "colorps.pipeline", "colorps.light_files",
            "colorps.tiles", "colorps.memory", "colorps.figures", "colorps.codes",
            "colorps.viewer", "colorps.relight", "colorps.mesh",
            "colorps.synth", "colorps.finishes", "colorps.shapes", "colorps.sample", "colorps.errors",
