@@ -156,7 +156,7 @@ def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask):
         return reconstruct(images, gauge_stack, gauge, settings, model_scale=model_scale,
                            mask=mask if pixels is None else pixels)
 
-    return without_interreflections(lambda: stack, solve(stack), solve)[:2]
+    return without_interreflections(lambda: stack, solve(stack), solve, gauge, gauge_stack)[:2]
 
 
 def run_virtual(stack, lights: Lights, mask, settings=None):

@@ -37,6 +37,7 @@ import numpy as np
 
 from colorps import light_masks
 from colorps.bounce import BounceGrid, bounced_light, cell_grid, gather, light_at
+from colorps.gauge import Gauge, parse_albedo
 from colorps.integrate import integrate
 
 __all__ = ["bounce_grid", "bounce_scale", "sees_itself", "without_interreflections"]
@@ -71,17 +72,24 @@ SIGN_TEST_SDS = 3.0
 #: the whole scene is solved again: 20,000 take a third of a 1 MP solve's time,
 #: and their median residual is within 1 % of the whole's.
 PROBE_PIXELS = 20_000
+#: The scale the shadows give is tried on the probe times each of these, and the
+#: one the gauge explains best kept for every pass: the shadows' fit is biased
+#: low (only the measurements under :data:`SHADOW_BELOW` count), and too little
+#: bounced light taken out leaves much of its error (deep folds: a scale of 0.89
+#: for 1 gave 0.85 degrees; 1.2 times it, chosen so, 0.30).
+SCALE_FACTORS = (1.0, 1.2, 1.45)
 #: Shadowed measurements (with some bounced light) needed to fit the scale;
 #: fewer, and the bounced light is left in (not guessed from the stated albedo).
 MIN_SHADOWED = 200
 #: A left-out measurement counts as shadowed (only bounced light reaching it) when
-#: below this share of the pixel's brightest: bounced light rarely exceeds a
-#: quarter of the direct light, while a lit measurement the match left out (a
-#: coat's highlight missing, another finish's falloff) is mostly brighter. Below
-#: the pixel's median instead: a varnished scene without bounced light fitted a
-#: scale of 0.15 and kept a pass (0.64 -> 1.33 degrees); below 0.1 the fit drops
-#: the shadows bounced light fills most (scale 0.77 for 1, 5.0 -> 1.6 degrees).
-SHADOW_BELOW = 0.25
+#: below this share of what its light would give the pixel directly: a lit
+#: measurement the match left out (a coat's highlight missing, another finish's
+#: falloff) is near that or above. Below the pixel's median measurement instead,
+#: a glossy scene (a GGX coat of F0 0.5) without bounced light, whose lit
+#: measurements are far below its highlights, fitted a scale of 0.45 and kept
+#: its passes with --lights (1.47 -> 3.71 degrees); lower shares leave out more
+#: of the shadows bounced light fills most (0.25: a scale of 0.75 for 1).
+SHADOW_BELOW = 0.75
 
 
 def bounce_grid(scene: np.ndarray, normals: np.ndarray, solved: np.ndarray,
@@ -111,30 +119,46 @@ def bounce_grid(scene: np.ndarray, normals: np.ndarray, solved: np.ndarray,
     return gather(grid, height, scene, solved, albedo)
 
 
-def bounce_scale(scene: np.ndarray, grid: BounceGrid, result) -> float | None:
+def bounce_scale(scene: np.ndarray, grid: BounceGrid, result, gauge: Gauge,
+                 gauge_stack: np.ndarray) -> float | None:
     """The factor ``grid``'s bounced light is off by: the albedo's unknown absolute scale.
 
     Fitted by least squares, ``scene = scale * bounced``, on the measurements
     ``result`` (the solve ``grid`` was made from) left out of its match that
-    are below :data:`SHADOW_BELOW` of the pixel's brightest (cast shadows: the
-    bounced light alone reaches them; the highlights and misfits it also
-    leaves out are brighter), and capped
-    where the median albedo would reflect all the light it gets (a few
-    pixels' albedo, from few lights, can be far off). None when fewer than
+    are below :data:`SHADOW_BELOW` of what the light would give the pixel
+    (:func:`_direct`: the gauge's pixel of the same normal, times the pixel's
+    albedo): cast shadows, which the bounced light alone reaches (the
+    highlights and misfits it also leaves out are not so dark). Capped where
+    the median albedo would reflect all the light it gets (a few pixels'
+    albedo, from few lights, can be far off). None when fewer than
     :data:`MIN_SHADOWED` such measurements hold bounced light.
     """
     m = scene.shape[0]
     ys, xs = np.nonzero(result.solved & ~light_masks.is_empty(result.dropped_lights))
     seen = scene[:, ys, xs]  # (m, n, c)
-    brightness = seen.sum(axis=2)
-    darker = brightness < SHADOW_BELOW * brightness.max(axis=0)[None]  # (not a highlight's)
-    shadowed = light_masks.to_bool(result.dropped_lights[ys, xs], m).T & darker
+    direct = _direct(result, gauge, gauge_stack, ys, xs).sum(axis=2)
+    shadowed = light_masks.to_bool(result.dropped_lights[ys, xs], m).T & \
+        (seen.sum(axis=2) < SHADOW_BELOW * direct)
     gathered = light_at(grid, result.albedo, ys, xs)[shadowed]
     if (gathered > 0).sum() < MIN_SHADOWED:
         return None
     scale = float((seen[shadowed] * gathered).sum() / (gathered * gathered).sum())
     typical = float(np.nanmedian(result.albedo[result.solved])) if result.solved.any() else 0.0
     return float(np.clip(scale, 0.0, 1.0 / typical if typical > 0 else np.inf))
+
+
+def _direct(result, gauge: Gauge, gauge_stack: np.ndarray, ys: np.ndarray, xs: np.ndarray
+            ) -> np.ndarray:
+    """What each light gives pixels (``ys``, ``xs``) of ``result`` directly, (m, n, c):
+    the gauge's measurements at its pixel of the nearest normal, times the
+    pixel's albedo over the gauge's."""
+    from scipy.spatial import cKDTree
+
+    inside = gauge.mask & np.isfinite(gauge.normals).all(axis=-1)
+    nearest = cKDTree(gauge.normals[inside]).query(result.normals[ys, xs])[1]
+    bands = gauge_stack.shape[3]
+    relative = np.nan_to_num(result.albedo[ys, xs]) / parse_albedo(gauge.albedo, bands)
+    return gauge_stack[:, inside][:, nearest] * relative[None]
 
 
 def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_CELLS
@@ -151,8 +175,8 @@ def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_
 
 
 def without_interreflections(read_scene: Callable[[], np.ndarray], first,
-                             solve: Callable, *, passes: int = PASSES,
-                             cells: int = BOUNCE_CELLS):
+                             solve: Callable, gauge: Gauge, gauge_stack: np.ndarray, *,
+                             passes: int = PASSES, cells: int = BOUNCE_CELLS):
     """Solve a scene again without the light its own surfaces bounce.
 
     Parameters
@@ -167,6 +191,10 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         solve of another stack, on the (H, W) bool mask ``pixels`` (None: the
         run's own) at that model scale (None: its own measured; a sample of
         the pixels is solved at ``first``'s, which the whole measured).
+    gauge : Gauge
+    gauge_stack : (m, Hg, Wg, c) ndarray
+        The gauge ``first`` was solved with and its images (what each light
+        gives each normal: :func:`bounce_scale`'s shadows).
     passes : int, optional
         Solves without the bounced light, each from the shape of the one before.
     cells : int, optional
@@ -199,10 +227,10 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
                   passes=0, scale=None, bounced_share=None, residuals=[], stopped=None)
     if record["sees_itself"] < MIN_LIT_CELLS:
         return first, None, record
-    scene, result, corrected, probe = read_scene(), first, None, None
+    scene, result, corrected, probe, factor = read_scene(), first, None, None, 1.0
     for index in range(passes):
         grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells)
-        scale = bounce_scale(scene, grid, result)
+        scale = bounce_scale(scene, grid, result, gauge, gauge_stack)
         if scale is None:
             record["stopped"] = "too few cast-shadow measurements to fit its scale"
             break
@@ -212,12 +240,14 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
             break
         if probe is None:  # tried first on a sample of the pixels it reaches
             probe = _probe(reached, grid.step, first.solved)
-            tried = solve(_without_at(scene, grid, scale, result.albedo, probe), probe,
-                          first.stats.model_scale)
-            record["residuals"] = [_residual(first, probe), _residual(tried, probe)]
-            if not _explains_better(tried, first, probe):  # (a glossy finish's highlights
-                record["stopped"] = "the gauge explains it no better"  # are not bounces)
+            tries = {f: solve(_without_at(scene, grid, f * scale, result.albedo, probe), probe,
+                              first.stats.model_scale) for f in SCALE_FACTORS}
+            factor = min(tries, key=lambda f: _residual(tries[f], probe))
+            record["residuals"] = [_residual(first, probe), _residual(tries[factor], probe)]
+            if not _explains_better(tries[factor], first, probe):  # (a glossy finish's
+                record["stopped"] = "the gauge explains it no better"  # highlights)
                 break
+        scale *= factor
         light = bounced_light(grid, result.albedo, scene.shape[1:3])
         light *= scale
         attempt = np.maximum(scene - light, 0.0, out=light)  # (in place: one stack less)

@@ -443,7 +443,7 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
         lambda stack, pixels, scale: reconstruct(
             stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
-            mask=mask if pixels is None else pixels))
+            mask=mask if pixels is None else pixels), gauge, gauge_stack)
 
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,

@@ -14,6 +14,7 @@ from colorps.cli import main
 from colorps.interreflection import (
     BETTER_BY,
     PROBE_PIXELS,
+    SCALE_FACTORS,
     sees_itself,
     without_interreflections,
 )
@@ -86,7 +87,7 @@ def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
 
     first = SimpleNamespace(normals=sphere.normals, solved=sphere.mask,
                             stats=SimpleNamespace(residual_median_noise_units=1.0))
-    result, solved_from, record = without_interreflections(unread, first, None)
+    result, solved_from, record = without_interreflections(unread, first, None, None, None)
     assert result is first and solved_from is None and record["passes"] == 0
 
 
@@ -119,7 +120,8 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds):
                            mask=scene.mask if pixels is None else pixels)
 
     first = solve(stack)
-    result, solved_from, record = without_interreflections(lambda: stack, first, solve)
+    result, solved_from, record = without_interreflections(lambda: stack, first, solve, gauge,
+                                                           gauge_stack)
     assert _mean_error(first, scene) > 3.0
     assert _mean_error(result, scene) < 0.5 * _mean_error(first, scene)
     assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
@@ -130,7 +132,7 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds):
 def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
     """Taking out light that is not there (a glossy scene's highlights taken as
     light sent to its neighbours) makes the match worse: the first result stays,
-    after one try on a sample of the pixels alone."""
+    after a try of each scale on a sample of the pixels alone."""
     scene, stack, gauge_stack, gauge = bounced_folds
     first = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
     tried = []
@@ -140,10 +142,11 @@ def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
         return SimpleNamespace(solved=pixels, quality=first.quality / BETTER_BY * 1.01,
                                stats=first.stats)
 
-    result, solved_from, record = without_interreflections(lambda: stack, first, worse)
+    result, solved_from, record = without_interreflections(lambda: stack, first, worse, gauge,
+                                                           gauge_stack)
     assert result is first and solved_from is None and record["passes"] == 0
     assert len(record["residuals"]) == 2 and record["residuals"][1] > record["residuals"][0]
-    assert len(tried) == 1 and 0 < tried[0] <= PROBE_PIXELS
+    assert len(tried) == len(SCALE_FACTORS) and 0 < max(tried) <= PROBE_PIXELS
 
 
 def test_reconstruct_takes_out_bounced_light_and_says_so(bounced_folds, tmp_path):
