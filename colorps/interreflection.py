@@ -227,12 +227,15 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
                   passes=0, scale=None, bounced_share=None, residuals=[], stopped=None)
     if record["sees_itself"] < MIN_LIT_CELLS:
         return first, None, record
+    if light_masks.count(first.dropped_lights[first.solved]).sum() < MIN_SHADOWED:
+        record["stopped"] = _NO_SHADOWS  # (said before the images are read again)
+        return first, None, record
     scene, result, corrected, probe, factor = read_scene(), first, None, None, 1.0
     for index in range(passes):
         grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells)
         scale = bounce_scale(scene, grid, result, gauge, gauge_stack)
         if scale is None:
-            record["stopped"] = "too few cast-shadow measurements to fit its scale"
+            record["stopped"] = _NO_SHADOWS
             break
         reached = grid.valid & (scale * grid.share >= MIN_SHARE)
         if reached.sum() < MIN_LIT_CELLS * grid.valid.sum():
@@ -260,6 +263,9 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         record.update(passes=index + 1, scale=scale, bounced_share=float(
             np.median(scale * grid.share[reached])))
     return result, corrected, record
+
+
+_NO_SHADOWS = "too few cast-shadow measurements to fit its scale"
 
 
 def _without_at(scene: np.ndarray, grid: BounceGrid, scale: float, albedo: np.ndarray,
