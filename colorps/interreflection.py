@@ -16,7 +16,7 @@ it sees of ``L_q cos(theta_p) cos(theta_q) A_q / (pi r^2)``, times the pixel's
 albedo. :func:`bounce_grid` gathers it (:mod:`colorps.bounce`) on a grid of at
 most :data:`BOUNCE_CELLS` cells, the relief integrated from the solved normals,
 and :func:`without_interreflections`
-subtracts it from the scene and solves again, :data:`PASSES` times, each with
+subtracts it from the scene and solves again, up to :data:`PASSES` times, each with
 the shape of the pass before. The observed radiance already holds every further
 bounce, so one subtraction removes them all, up to the shape's errors.
 
