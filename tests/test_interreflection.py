@@ -15,6 +15,7 @@ from colorps.interreflection import (
     BETTER_BY,
     PROBE_PIXELS,
     SCALE_FACTORS,
+    SCALE_UNCERTAINTY,
     sees_itself,
     without_interreflections,
 )
@@ -127,6 +128,12 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds):
     assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
     assert record["residuals"][-1] < BETTER_BY * record["residuals"][0]
     assert solved_from.shape == stack.shape and (solved_from <= stack).all()
+    # Its radius counts the scale's own uncertainty: the true errors lie within it.
+    ok = scene.mask & result.solved
+    error = angular_error(result.normals[ok], scene.normals[ok])
+    moved = angular_error(result.normals[ok], first.normals[ok])
+    assert (result.uncertainty[ok] >= SCALE_UNCERTAINTY * moved - 1e-4).all()
+    assert np.mean(error <= result.uncertainty[ok]) > 0.6
 
 
 def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
