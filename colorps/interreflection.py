@@ -253,8 +253,8 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
             break
         if probe is None:  # tried first on a sample of the pixels it reaches
             probe = _probe(reached, grid.step, first.solved)
-            tries = {f: solve(_without_at(scene, grid, f * scale, result.albedo, probe), probe,
-                              first.stats.model_scale) for f in SCALE_FACTORS}
+            tries = {f: solve(stack, probe, first.stats.model_scale)
+                     for f, stack in _without_at(scene, grid, scale, result.albedo, probe)}
             factor = min(tries, key=lambda f: _residual(tries[f], probe))
             record["residuals"] = [_residual(first, probe), _residual(tries[factor], probe)]
             if not _explains_better(tries[factor], first, probe):  # (a glossy finish's
@@ -295,13 +295,17 @@ _NO_SHADOWS = "too few cast-shadow measurements to fit its scale"
 
 
 def _without_at(scene: np.ndarray, grid: BounceGrid, scale: float, albedo: np.ndarray,
-                pixels: np.ndarray) -> np.ndarray:
-    """A copy of ``scene`` with ``scale`` times the bounced light taken out at
-    ``pixels`` ((H, W) bool) alone."""
+                pixels: np.ndarray):
+    """For each of :data:`SCALE_FACTORS`, the factor and ``scene`` with that
+    factor times ``scale`` times the bounced light taken out at ``pixels``
+    ((H, W) bool) alone: one copy of ``scene``, its probed pixels rewritten
+    for each factor (use each before asking for the next)."""
     ys, xs = np.nonzero(pixels)
+    seen, light = scene[:, ys, xs], scale * light_at(grid, albedo, ys, xs)
     out = scene.copy()
-    out[:, ys, xs] = np.maximum(out[:, ys, xs] - scale * light_at(grid, albedo, ys, xs), 0.0)
-    return out
+    for factor in SCALE_FACTORS:
+        out[:, ys, xs] = np.maximum(seen - factor * light, 0.0)
+        yield factor, out
 
 
 def _probe(reached: np.ndarray, step: int, solved: np.ndarray) -> np.ndarray:
