@@ -51,6 +51,11 @@ BOUNCE_CELLS = 4096
 #: before (deep folds, 200 px, 32 lights: 5.0 degrees mean; after two passes
 #: 0.48, after three 0.38).
 PASSES = 3
+#: Passes when the shape to start from is already a corrected one's (the
+#: scene's own finish after another finish's gauge, :mod:`colorps.pipeline`):
+#: folds of a rough scene on a Lambertian gauge, 300 px under 48 lights, went
+#: 1.26 -> 0.38 degrees after one, 0.36 after three, for 14 s more.
+PASSES_AGAIN = 1
 #: A cell sees itself when the object fills at least this share of its view
 #: (form factor; a white surface would add that share of light): below it the
 #: error the bounced light causes is within the noise's.
@@ -184,7 +189,8 @@ def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_
 
 def without_interreflections(read_scene: Callable[[], np.ndarray], first,
                              solve: Callable, gauge: Gauge, gauge_stack: np.ndarray, *,
-                             passes: int = PASSES, cells: int = BOUNCE_CELLS):
+                             passes: int = PASSES, cells: int = BOUNCE_CELLS,
+                             solved_as_read: bool = True):
     """Solve a scene again without the light its own surfaces bounce.
 
     Parameters
@@ -207,6 +213,12 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         Solves without the bounced light, each from the shape of the one before.
     cells : int, optional
         See :func:`bounce_grid`.
+    solved_as_read : bool, optional
+        Whether ``first`` was solved from the measurements as read. False:
+        ``first`` is only the shape to start from (solved from measurements
+        whose bounced light another gauge's solve took out), and a pass is
+        kept when it explains the probe better than ``solve`` does the
+        measurements as read (solved on the probe alone).
 
     Returns
     -------
@@ -253,11 +265,12 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
             break
         if probe is None:  # tried first on a sample of the pixels it reaches
             probe = _probe(reached, grid.step, first.solved)
+            before = first if solved_as_read else solve(scene, probe, first.stats.model_scale)
             tries = {f: solve(stack, probe, first.stats.model_scale)
                      for f, stack in _without_at(scene, grid, scale, result.albedo, probe)}
             factor = min(tries, key=lambda f: _residual(tries[f], probe))
-            record["residuals"] = [_residual(first, probe), _residual(tries[factor], probe)]
-            if not _explains_better(tries[factor], first, probe):  # (a glossy finish's
+            record["residuals"] = [_residual(before, probe), _residual(tries[factor], probe)]
+            if not _explains_better(tries[factor], before, probe):  # (a glossy finish's
                 record["stopped"] = "the gauge explains it no better"  # highlights)
                 break
         scale *= factor
@@ -266,7 +279,7 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         attempt = np.maximum(scene - light, 0.0, out=light)  # (in place: one stack less)
         solved = solve(attempt, None, None)
         record["residuals"].append(_residual(solved, probe))
-        if not _explains_better(solved, first, probe):
+        if not _explains_better(solved, before, probe):
             record["stopped"] = "the gauge explains it no better"
             break
         result, corrected = solved, attempt

@@ -9,7 +9,8 @@ make the gauge (photographed: :meth:`colorps.Gauge.from_sphere`; rendered:
 :func:`colorps.tiles.reconstruct_tiled`), take out the light a concave object
 bounces onto itself (:func:`colorps.interreflection.without_interreflections`;
 a rendered gauge's finish fitted again without it), try the gauge's lights when
-the scene's finish looks another (:func:`colorps.virtual.with_gauge_lights`),
+the scene's finish looks another (:func:`colorps.virtual.with_gauge_lights`;
+the bounced light then taken out again with its shape and finish),
 integrate the height (:func:`colorps.integrate`) while the maps are written
 (:func:`colorps.outputs.save_reconstruction`). Option values arrive converted
 (:class:`~colorps.Options`); the command line only parses arguments.
@@ -35,7 +36,7 @@ from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
-from .interreflection import without_interreflections
+from .interreflection import PASSES_AGAIN, without_interreflections
 from .io import (
     check_decoded_size,
     check_stack_files,
@@ -166,9 +167,14 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                 finish_differs(result.stats.model_scale, checked):
             if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
                 solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
-            result, run, virtual = _with_gauge_lights(
+            result, run, virtual, lights = _with_gauge_lights(
                 result, stacks, gauge_stack, gauge, run, mask, inputs, checked, progress,
                 solved_from)
+            if virtual is not None and bounced.get("passes"):
+                result, run, virtual = _bounced_again(
+                    result, run, virtual, lights,
+                    lambda: _read_scene(stacks, run.options, plan, progress, True)[0],
+                    mask, inputs, progress, bounced)
         del solved_from
         report = _report(inputs, stacks, run, plan, gauge, virtual, names, bounced)
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
@@ -459,7 +465,7 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
         residual_with_gauge_lights=None, brdf=None)
     try:  # the gauge's lights may not be measurable (a small or one-sided sphere)
         if scene is not None:
-            other, other_run, finish, _ = with_gauge_lights(
+            other, other_run, finish, lights = with_gauge_lights(
                 scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
                 camera=inputs.camera, progress=progress)
             record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
@@ -467,8 +473,41 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
     except InputError as error:
         record["failed"] = str(error)
     if judge_finish(record, stacks.gauge_paths[0]):
-        return other, other_run, finish
-    return result, run, None
+        return other, other_run, finish, lights
+    return result, run, None, None
+
+
+def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
+                   inputs: CaptureFiles, progress: bool, bounced: dict):
+    """The gauge's lights' result (``finish``: the scene's own, fitted once a
+    gauge of another finish had taken its bounced light out), solved again
+    without the bounced light estimated anew from its shape and scaled against
+    the scene's own finish (from the measurements as read, ``read_scene()``),
+    that finish fitted once more (:func:`virtual.with_own_finish`): another
+    finish's normals give the bounced light another shape, and its shadows
+    another scale. Kept when its finish explains the scene at least as well.
+    Returns (result, settings, finish and its fits); its record is
+    ``bounced``'s ``with_scene_finish``."""
+    if inputs.camera is not None and finish[0].depends_on_view:
+        bounced["with_scene_finish"] = dict(skipped="matched along the camera's rays")
+        return result, run, finish
+    virtual = Gauge.virtual(lights, radius=inputs.virtual_radius, bands=result.albedo.shape[-1],
+                            brdf=finish[0])
+    _, corrected, record = without_interreflections(
+        read_scene, result,
+        lambda stack, pixels, scale: reconstruct(
+            stack, virtual.stack, virtual, run, model_scale=scale, progress=progress,
+            mask=mask if pixels is None else pixels), virtual, virtual.stack,
+        passes=PASSES_AGAIN, solved_as_read=False)
+    bounced["with_scene_finish"] = record
+    if corrected is None:
+        return result, run, finish
+    again = with_own_finish(corrected, lights, run, mask=mask, radius=inputs.virtual_radius,
+                            camera=inputs.camera, progress=progress)
+    del corrected
+    record["kept"] = bool(again[0].stats.residual_median_noise_units
+                          <= result.stats.residual_median_noise_units)
+    return again if record["kept"] else (result, run, finish)
 
 
 def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
