@@ -42,7 +42,8 @@ from colorps.gauge import Gauge, parse_albedo
 from colorps.geometry import angular_error
 from colorps.integrate import integrate
 
-__all__ = ["bounce_grid", "bounce_scale", "sees_itself", "without_interreflections"]
+__all__ = ["bounce_grid", "bounce_scale", "moved_by", "sees_itself", "with_scale_uncertainty",
+           "without_interreflections"]
 
 #: Cells (at most) of the grid the bounce is gathered on: 4096 costs 0.3 s for
 #: 32 RGB images on 2 cores, and the bounced light is smooth at that scale.
@@ -285,17 +286,27 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         result, corrected = solved, attempt
         record.update(passes=index + 1, scale=scale, bounced_share=float(
             np.median(scale * grid.share[reached])))
-    return (result if corrected is None else _with_scale_uncertainty(result, first)), \
+    return (result if corrected is None else
+            with_scale_uncertainty(result, moved_by(result, first))), \
         corrected, record
 
 
-def _with_scale_uncertainty(result, first):
-    """``result`` with its 68 % radius widened by what the bounced light's scale
-    leaves open: :data:`SCALE_UNCERTAINTY` of how far each normal moved from
-    ``first``'s, added in quadrature."""
+def moved_by(result, first) -> np.ndarray:
+    """(H, W) float32 angle (degrees) between ``result``'s normals and
+    ``first``'s where both are solved, 0 elsewhere: how far taking the bounced
+    light out moved each."""
     moved = np.zeros(result.solved.shape, dtype=np.float32)
     both = result.solved & first.solved
     moved[both] = angular_error(result.normals[both], first.normals[both])
+    return moved
+
+
+def with_scale_uncertainty(result, moved: np.ndarray):
+    """``result`` with its 68 % radius widened by what the bounced light's scale
+    leaves open: :data:`SCALE_UNCERTAINTY` of how far taking it out moved each
+    normal (``moved``, degrees: :func:`moved_by`), added in quadrature. For a
+    result solved again from the corrected measurements (a finish fitted again),
+    ``moved`` is the correction's own."""
     radius = np.sqrt(result.uncertainty ** 2 + (SCALE_UNCERTAINTY * moved) ** 2)
     inside = radius[result.solved & np.isfinite(radius)]
     stats = dataclasses.replace(

@@ -36,7 +36,12 @@ from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
-from .interreflection import PASSES_AGAIN, without_interreflections
+from .interreflection import (
+    PASSES_AGAIN,
+    moved_by,
+    with_scale_uncertainty,
+    without_interreflections,
+)
 from .io import (
     check_decoded_size,
     check_stack_files,
@@ -158,8 +163,9 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                                                  (stacks.light_set, virtual, inputs.camera),
                                                  progress)
         _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
-        result, solved_from, bounced = _without_interreflections(
+        result, solved_from, bounced, moved = _without_interreflections(
             result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress)
+        corrected = result
         if virtual is not None and solved_from is not None:  # its finish fitted again
             result, run, virtual = with_own_finish(solved_from, stacks.light_set, run, mask=mask,
                                                    radius=inputs.virtual_radius, progress=progress)
@@ -176,6 +182,9 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                     lambda: _read_scene(stacks, run.options, plan, progress, True)[0],
                     mask, inputs, progress, bounced)
         del solved_from
+        if moved is not None and result is not corrected:  # solved again: the scale's radius
+            result = with_scale_uncertainty(result, moved)
+        del corrected, moved
         report = _report(inputs, stacks, run, plan, gauge, virtual, names, bounced)
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
         report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
@@ -440,16 +449,20 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
                               progress: bool):
     """The result solved again without the light a concave object bounces onto itself
     (:func:`interreflection.without_interreflections`, the scene read again only
-    then), the measurements it was solved from (None: as read), report.json's record."""
+    then), the measurements it was solved from (None: as read), report.json's record,
+    and how far taking it out moved each normal (:func:`interreflection.moved_by`;
+    None: not taken out), for a result solved again from those measurements."""
     if not run.options.interreflections or plan.rows is not None or along_rays:
         why = ("--no-interreflections" if not run.options.interreflections else
                "a tiled run" if plan.rows is not None else "matched along the camera's rays")
-        return result, None, dict(skipped=why)
-    return without_interreflections(
+        return result, None, dict(skipped=why), None
+    corrected, solved_from, record = without_interreflections(
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
         lambda stack, pixels, scale: reconstruct(
             stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
             mask=mask if pixels is None else pixels), gauge, gauge_stack)
+    return corrected, solved_from, record, \
+        None if solved_from is None else moved_by(corrected, result)
 
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
