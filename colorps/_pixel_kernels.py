@@ -403,6 +403,60 @@ def group_residuals(scene_ov, group, gauge, noise, floor2, residual, distance):
         distance[p] = np.sqrt(d_sum / n_bands)
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def light_residuals(scene_ov, gauge_ov, lights, bands_used, extra_variance, noise, out):
+    """Signed residual of every light in noise units (colorps.residuals.light_residuals).
+
+    Parameters
+    ----------
+    scene_ov, gauge_ov : (P, B, m) float32 or float64
+        Each pixel's OVs and its matched gauge pixel's.
+    lights : (P, m) bool
+        The lights each band's albedo ratio is fitted over.
+    bands_used : (P, B) bool
+    extra_variance : (P, B) float64
+        Added to every measurement's noise variance of its pixel and band.
+    noise : tuple
+        The scene's noise model (read2, gain, pixel_kind, levels, table; see
+        mean_variance).
+
+    Outputs (written in place)
+    --------------------------
+    out : (P, m) float64
+        Sum over the used bands of (S - a G) / sigma, a the band's least-squares
+        ratio over ``lights``, divided by sqrt(bands used); a band whose sums are
+        not finite (an invalid measurement) adds nothing.
+    """
+    read2, gain, pixel_kind, levels, table = noise
+    n_pixels, n_bands, m = scene_ov.shape
+    for p in prange(n_pixels):
+        used = 0
+        for i in range(m):
+            out[p, i] = 0.0
+        for b in range(n_bands):
+            if not bands_used[p, b]:
+                continue
+            used += 1
+            sg = 0.0
+            gg = 0.0
+            for i in range(m):
+                w = 1.0 if lights[p, i] else 0.0  # (NaN * 0 stays NaN, as in numpy)
+                s, g = np.float64(scene_ov[p, b, i]), np.float64(gauge_ov[p, b, i])
+                sg += s * g * w
+                gg += g * g * w
+            ratio = sg / gg
+            for i in range(m):
+                s, g = np.float64(scene_ov[p, b, i]), np.float64(gauge_ov[p, b, i])
+                sigma = np.sqrt(_variance(s, read2, gain, pixel_kind, levels, table)
+                                + extra_variance[p, b])
+                r = (s - ratio * g) / sigma
+                if np.isfinite(r):
+                    out[p, i] += r
+        scale = 1.0 / np.sqrt(max(used, 1))
+        for i in range(m):
+            out[p, i] *= scale
+
+
 @njit(cache=True, parallel=True)
 def band_snr(scene_ov, ys, xs, valid, read2, gain, pixel_kind, levels, table, out):
     """|S_k| / sigma_k of each band of pixels (ys, xs), sigma_k^2 the mean variance

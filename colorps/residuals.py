@@ -176,13 +176,14 @@ def light_residuals(scene_ov, gauge_ov, lights, bands_used, model: NoiseModel, *
     ``extra_variance`` ((P, B), optional) is added to every measurement's
     noise variance of its pixel and band (what else a right match leaves).
     """
-    s = scene_ov.astype(np.float64)
-    g = gauge_ov.astype(np.float64)
-    w = lights[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = (s * g * w).sum(axis=-1) / (g * g * w).sum(axis=-1)  # (P, B)
-        sigma = model.sigma(s) if extra_variance is None else \
-            np.sqrt(model.sigma(s) ** 2 + extra_variance[..., None])
-        r = (s - ratio[..., None] * g) / sigma
-    r = np.where(bands_used[..., None] & np.isfinite(r), r, 0.0)
-    return r.sum(axis=1) / np.sqrt(np.maximum(bands_used.sum(axis=1), 1))[:, None]
+    from . import _pixel_kernels
+
+    n, bands, m = scene_ov.shape
+    extra = np.zeros((n, bands)) if extra_variance is None else \
+        np.ascontiguousarray(np.broadcast_to(extra_variance, (n, bands)), dtype=np.float64)
+    out = np.empty((n, m))
+    _pixel_kernels.light_residuals(np.ascontiguousarray(scene_ov), np.ascontiguousarray(gauge_ov),
+                                   np.ascontiguousarray(lights, dtype=bool),
+                                   np.ascontiguousarray(bands_used, dtype=bool), extra,
+                                   model.kernel_args(), out)
+    return out

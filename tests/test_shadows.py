@@ -95,6 +95,34 @@ def test_masked_residuals_over_every_light_are_the_table_residuals():
     np.testing.assert_allclose(d, group.distance, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("model", [NoiseModel(0.003, 1e-4, "int", 255, "srgb"),
+                                   NoiseModel(0.002, 0.0, "half"), NoiseModel(0.001, 0.0)])
+def test_per_light_residuals_are_the_formula(model):
+    """The compiled per-light residual is (S - a G) / sigma(S) summed over the used
+    bands over sqrt(their count), a each band's least-squares ratio over the kept
+    lights, written out in numpy here; a band with an invalid measurement or no
+    gauge signal adds nothing."""
+    from colorps.residuals import light_residuals
+
+    rng = np.random.default_rng(1)
+    n, bands, m = 500, 3, 40
+    scene_ov = rng.random((n, bands, m)).astype(np.float32)
+    gauge_ov = scene_ov + rng.normal(0, 0.01, scene_ov.shape)
+    scene_ov[5, 1, 3] = np.nan
+    gauge_ov[7, 0] = 0.0
+    keep, used = rng.random((n, m)) > 0.2, rng.random((n, bands)) > 0.1
+    extra = rng.random((n, bands)) * 1e-4
+    s, g = scene_ov.astype(np.float64), gauge_ov
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (s * g * keep[:, None]).sum(axis=-1) / (g * g * keep[:, None]).sum(axis=-1)
+        r = (s - ratio[..., None] * g) / np.sqrt(model.sigma(s) ** 2 + extra[..., None])
+    r = np.where(used[..., None] & np.isfinite(r), r, 0.0)
+    expected = r.sum(axis=1) / np.sqrt(np.maximum(used.sum(axis=1), 1))[:, None]
+    got = light_residuals(scene_ov, gauge_ov, keep, used, model, extra_variance=extra)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
+    assert np.isfinite(got).all()
+
+
 def least_squares(stack, lights, mask):
     """Woodham's photometric stereo on every light (grey: the bands' mean)."""
     directions = lights.directions[:, 0, :]
