@@ -48,14 +48,25 @@ def masked_search(pixels, gauge, window, min_lights, out_row, out_d2):
     among those whose L holds at least ``min_lights`` lights.
 
     Writes its flat index (-1 when the window holds no usable gauge pixel) and
-    D^2 (summed over the matched bands) into out_row and out_d2.
+    D^2 (summed over the matched bands) into out_row and out_d2. A gauge pixel
+    with no clipped light (most) has L the pixel's kept lights, whose scene
+    norms are summed once per pixel.
     """
-    scene_ov, ys, xs, bands, keep = pixels
-    gauge_ov, usable, clipped = gauge
+    scene_ov, ys, xs, _, keep = pixels
+    gauge_ov, _, clipped = gauge
     cy, cx, reach, step = window
     hg, wg, n_bands, m = gauge_ov.shape
     for p in prange(ys.size):
         y, x = ys[p], xs[p]
+        kept = 0
+        for i in range(m):
+            if keep[p, i]:
+                kept += 1
+        ss = np.zeros(n_bands)  # |S_k,L|^2 over the kept lights
+        for b in range(n_bands):
+            for i in range(m):
+                if keep[p, i]:
+                    ss[b] += np.float64(scene_ov[y, x, b, i]) ** 2
         best, best_d2 = -1, np.inf
         for di in range(-reach, reach + 1):
             gy = cy[p] + step * di
@@ -65,37 +76,90 @@ def masked_search(pixels, gauge, window, min_lights, out_row, out_d2):
                 gx = cx[p] + step * dj
                 if gx < 0 or gx >= wg:
                     continue
-                n_lights = 0
-                for i in range(m):
-                    if _lit(keep, clipped, p, gy, gx, i):
-                        n_lights += 1
-                if n_lights < min_lights:
+                if _any_clipped(clipped, gy, gx):
+                    d2 = _clipped_d2(pixels, gauge, p, gy, gx, min_lights, best_d2)
+                elif kept < min_lights:
                     continue
-                d2 = 0.0
-                for b in range(n_bands):
-                    if not bands[p, b]:
-                        continue
-                    if not usable[gy, gx, b]:
-                        d2 = np.inf
-                        break
-                    dot, gg, ss = 0.0, 0.0, 0.0
-                    for i in range(m):
-                        if _lit(keep, clipped, p, gy, gx, i):
-                            g = np.float64(gauge_ov[gy, gx, b, i])
-                            s = np.float64(scene_ov[y, x, b, i])
-                            dot += s * g
-                            gg += g * g
-                            ss += s * s
-                    if gg <= 0.0 or ss <= 0.0:
-                        d2 = np.inf
-                        break
-                    d2 += 2.0 - 2.0 * dot / np.sqrt(ss * gg)
-                    if d2 >= best_d2:
-                        break
+                else:
+                    d2 = _kept_d2(pixels, gauge, p, gy, gx, ss, best_d2)
                 if d2 < best_d2:
                     best, best_d2 = gy * wg + gx, d2
         out_row[p] = best
         out_d2[p] = best_d2
+
+
+@njit(cache=True, inline="always")
+def _any_clipped(clipped, gy, gx):
+    """Whether gauge pixel (gy, gx) has any clipped light."""
+    for word in range(clipped.shape[2]):  # noqa: SIM110 (a loop numba compiles)
+        if clipped[gy, gx, word] != 0:
+            return True
+    return False
+
+
+@njit(cache=True, inline="always")
+def _kept_d2(pixels, gauge, p, gy, gx, ss, best_d2):
+    """D^2 of pixel p and gauge pixel (gy, gx) over p's kept lights (none of
+    them clipped there), ``ss`` the pixel's squared norms per band over them;
+    at least ``best_d2`` once the sum reaches it, inf when a band is unusable."""
+    scene_ov, ys, xs, bands, keep = pixels
+    gauge_ov, usable, _ = gauge
+    y, x = ys[p], xs[p]
+    d2 = 0.0
+    for b in range(gauge_ov.shape[2]):
+        if not bands[p, b]:
+            continue
+        if not usable[gy, gx, b]:
+            return np.inf
+        dot, gg = 0.0, 0.0
+        for i in range(gauge_ov.shape[3]):
+            if keep[p, i]:
+                g = np.float64(gauge_ov[gy, gx, b, i])
+                dot += np.float64(scene_ov[y, x, b, i]) * g
+                gg += g * g
+        if gg <= 0.0 or ss[b] <= 0.0:
+            return np.inf
+        d2 += 2.0 - 2.0 * dot / np.sqrt(ss[b] * gg)
+        if d2 >= best_d2:
+            return d2
+    return d2
+
+
+@njit(cache=True, inline="always")
+def _clipped_d2(pixels, gauge, p, gy, gx, min_lights, best_d2):
+    """D^2 of pixel p and gauge pixel (gy, gx) over L, p's kept lights but for
+    those clipped at (gy, gx); inf when L holds fewer than ``min_lights`` or a
+    band is unusable, at least ``best_d2`` once the sum reaches it."""
+    scene_ov, ys, xs, bands, keep = pixels
+    gauge_ov, usable, clipped = gauge
+    y, x = ys[p], xs[p]
+    m = gauge_ov.shape[3]
+    n_lights = 0
+    for i in range(m):
+        if _lit(keep, clipped, p, gy, gx, i):
+            n_lights += 1
+    if n_lights < min_lights:
+        return np.inf
+    d2 = 0.0
+    for b in range(gauge_ov.shape[2]):
+        if not bands[p, b]:
+            continue
+        if not usable[gy, gx, b]:
+            return np.inf
+        dot, gg, ss = 0.0, 0.0, 0.0
+        for i in range(m):
+            if _lit(keep, clipped, p, gy, gx, i):
+                g = np.float64(gauge_ov[gy, gx, b, i])
+                s = np.float64(scene_ov[y, x, b, i])
+                dot += s * g
+                gg += g * g
+                ss += s * s
+        if gg <= 0.0 or ss <= 0.0:
+            return np.inf
+        d2 += 2.0 - 2.0 * dot / np.sqrt(ss * gg)
+        if d2 >= best_d2:
+            return d2
+    return d2
 
 
 @njit(cache=True, parallel=True)
