@@ -515,8 +515,12 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
     bounced["with_scene_finish"] = record
     if corrected is None:
         return result, run, finish
-    again = with_own_finish(corrected, lights, run, mask=mask, radius=inputs.virtual_radius,
-                            camera=inputs.camera, progress=progress)
+    try:
+        again = with_own_finish(corrected, lights, run, mask=mask, radius=inputs.virtual_radius,
+                                camera=inputs.camera, progress=progress)
+    except InputError as error:  # (a finish fit short of lit measurements)
+        record.update(kept=False, failed=str(error))
+        return result, run, finish
     del corrected
     record["kept"] = bool(again[0].stats.residual_median_noise_units
                           <= result.stats.residual_median_noise_units)

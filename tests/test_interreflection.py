@@ -209,3 +209,29 @@ def test_reconstruct_takes_out_bounced_light_and_says_so(rough_bounced_folds, tm
     assert abs(again["scale"] - 0.5) < abs(first["scale"] - 0.5)
     # The gauge's pass alone left 1.33 degrees (6.48 with the bounced light in).
     assert errors["out"] < 1.1 < errors["kept"]
+
+
+def test_a_finish_that_cannot_be_fitted_again_keeps_the_result(monkeypatch):
+    """When the scene's finish cannot be fitted on the measurements without the
+    bounced light (too few lit ones left), the finish route's result stands and
+    the record says why."""
+    from colorps import pipeline
+    from colorps.brdf import BRDF
+    from colorps.errors import InputError
+    from colorps.lights import Lights
+
+    def no_fit(*args, **kwargs):
+        raise InputError("brdf fit: only 12 usable lit measurements")
+
+    monkeypatch.setattr(pipeline, "without_interreflections",
+                        lambda *args, **kwargs: (None, np.zeros((6, 4, 4, 3)), dict(passes=1)))
+    monkeypatch.setattr(pipeline, "with_own_finish", no_fit)
+    result = SimpleNamespace(albedo=np.ones((4, 4, 3)))
+    lights = Lights(dome_lights(6).directions[:, 0, :])
+    inputs = SimpleNamespace(camera=None, virtual_radius=20.0)
+    bounced = {}
+    out = pipeline._bounced_again(result, "run", (BRDF.lambert(), None), lights, None, None,
+                                  inputs, False, bounced)
+    assert out[0] is result and out[1] == "run"
+    assert bounced["with_scene_finish"]["kept"] is False
+    assert "12 usable" in bounced["with_scene_finish"]["failed"]
