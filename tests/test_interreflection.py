@@ -92,14 +92,15 @@ def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
     assert result is first and solved_from is None and record["passes"] == 0
 
 
-@pytest.fixture(scope="module")
-def bounced_folds():
-    """Deep folds (96 px, 24 dome lights, cast shadows) with a physical one-bounce
-    interreflection, and a grey (0.5) Lambertian gauge stated as white: the
-    bounced light's scale is then 0.5."""
+def _folds_capture(**finish):
+    """Deep folds (96 px, 24 dome lights, cast shadows) of the scene's ``finish``
+    (:func:`synth.render`'s keywords) with a physical one-bounce interreflection,
+    and a grey (0.5) Lambertian gauge stated as white: the bounced light's scale
+    is then 0.5. (scene, its stack, the gauge's stack, gauge)."""
     lights = dome_lights(24)
     scene = folds_surface(96)
-    stack = synth.render(scene, lights, noise=0.002, cast_shadows=True, interreflection=1.0)
+    stack = synth.render(scene, lights, noise=0.002, cast_shadows=True, interreflection=1.0,
+                         **finish)
     size = 70
     centre = (size - 1) / 2
     gauge = Gauge.from_sphere((size, size), centre, centre, 30)
@@ -107,6 +108,12 @@ def bounced_folds():
                                   mask=gauge.mask, albedo=np.full((size, size, 3), 0.5),
                                   height=np.zeros((size, size)))
     return scene, stack, synth.render(ball, lights, noise=0.002, seed=2), gauge
+
+
+@pytest.fixture(scope="module")
+def bounced_folds():
+    """Lambertian folds on the grey Lambertian gauge (:func:`_folds_capture`)."""
+    return _folds_capture()
 
 
 def _mean_error(result, scene):
@@ -158,20 +165,10 @@ def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
 
 @pytest.fixture(scope="module")
 def rough_bounced_folds():
-    """The folds of :func:`bounced_folds` with a rough (Oren-Nayar 0.3) finish on
-    the same grey Lambertian gauge: ``colorps reconstruct`` takes the gauge's
-    lights and the scene's own finish."""
-    lights = dome_lights(24)
-    scene = folds_surface(96)
-    stack = synth.render(scene, lights, brdf="oren-nayar", roughness=0.3, noise=0.002,
-                         cast_shadows=True, interreflection=1.0)
-    size = 70
-    centre = (size - 1) / 2
-    gauge = Gauge.from_sphere((size, size), centre, centre, 30)
-    ball = synth.SyntheticSurface(normals=np.where(gauge.mask[..., None], gauge.normals, 0.0),
-                                  mask=gauge.mask, albedo=np.full((size, size, 3), 0.5),
-                                  height=np.zeros((size, size)))
-    return scene, stack, synth.render(ball, lights, noise=0.002, seed=2), gauge
+    """The folds with a rough (Oren-Nayar 0.3) finish on the grey Lambertian
+    gauge: ``colorps reconstruct`` takes the gauge's lights and the scene's own
+    finish."""
+    return _folds_capture(brdf="oren-nayar", roughness=0.3)
 
 
 @pytest.mark.filterwarnings("ignore::colorps.errors.ColorPSWarning")
