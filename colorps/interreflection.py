@@ -32,6 +32,7 @@ not light a matte surface sends its neighbours.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from collections.abc import Callable
 
 import numpy as np
@@ -191,7 +192,7 @@ def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_
 def without_interreflections(read_scene: Callable[[], np.ndarray], first,
                              solve: Callable, gauge: Gauge, gauge_stack: np.ndarray, *,
                              passes: int = PASSES, cells: int = BOUNCE_CELLS,
-                             solved_as_read: bool = True):
+                             solved_as_read: bool = True, progress: bool = False):
     """Solve a scene again without the light its own surfaces bounce.
 
     Parameters
@@ -220,6 +221,9 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         whose bounced light another gauge's solve took out), and a pass is
         kept when it explains the probe better than ``solve`` does the
         measurements as read (solved on the probe alone).
+    progress : bool, optional
+        Say on stderr what is done (the object sees itself, each pass, why the
+        bounced light stays in).
 
     Returns
     -------
@@ -253,6 +257,9 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
     if light_masks.count(first.dropped_lights[first.solved]).sum() < MIN_SHADOWED:
         record["stopped"] = _NO_SHADOWS  # (said before the images are read again)
         return first, None, record
+    say = _say if progress else (lambda message: None)
+    say(f"{record['sees_itself']:.0%} of the object sees itself: estimating the light it "
+        "bounces onto itself")
     scene, result, corrected, probe, factor = read_scene(), first, None, None, 1.0
     for index in range(passes):
         grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells)
@@ -275,6 +282,8 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
                 record["stopped"] = "the gauge explains it no better"  # highlights)
                 break
         scale *= factor
+        say(f"solving again without it (pass {index + 1} of up to {passes}, its scale "
+            f"{scale:.2f})")
         light = bounced_light(grid, result.albedo, scene.shape[1:3])
         light *= scale
         attempt = np.maximum(scene - light, 0.0, out=light)  # (in place: one stack less)
@@ -286,9 +295,16 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         result, corrected = solved, attempt
         record.update(passes=index + 1, scale=scale, bounced_share=float(
             np.median(scale * grid.share[reached])))
+    if record["stopped"] and not record["passes"]:
+        say(f"the bounced light stays in: {record['stopped']}")
     return (result if corrected is None else
             with_scale_uncertainty(result, moved_by(result, first))), \
         corrected, record
+
+
+def _say(message: str) -> None:
+    """One line of progress on stderr."""
+    print(f"bounced light: {message}", file=sys.stderr)
 
 
 def moved_by(result, first) -> np.ndarray:

@@ -460,7 +460,7 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
         lambda stack, pixels, scale: reconstruct(
             stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
-            mask=mask if pixels is None else pixels), gauge, gauge_stack)
+            mask=mask if pixels is None else pixels), gauge, gauge_stack, progress=progress)
     return corrected, solved_from, record, \
         None if solved_from is None else moved_by(corrected, result)
 
@@ -511,7 +511,7 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
         lambda stack, pixels, scale: reconstruct(
             stack, virtual.stack, virtual, run, model_scale=scale, progress=progress,
             mask=mask if pixels is None else pixels), virtual, virtual.stack,
-        passes=PASSES_AGAIN, solved_as_read=False)
+        passes=PASSES_AGAIN, solved_as_read=False, progress=progress)
     bounced["with_scene_finish"] = record
     if corrected is None:
         return result, run, finish

@@ -120,7 +120,7 @@ def _mean_error(result, scene):
     return float(angular_error(result.normals[scene.mask], scene.normals[scene.mask]).mean())
 
 
-def test_bounced_light_is_taken_out_of_folds(bounced_folds):
+def test_bounced_light_is_taken_out_of_folds(bounced_folds, capsys):
     scene, stack, gauge_stack, gauge = bounced_folds
 
     def solve(images, pixels=None, model_scale=None):
@@ -129,7 +129,10 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds):
 
     first = solve(stack)
     result, solved_from, record = without_interreflections(lambda: stack, first, solve, gauge,
-                                                           gauge_stack)
+                                                           gauge_stack, progress=True)
+    said = capsys.readouterr().err
+    assert "of the object sees itself" in said
+    assert said.count("solving again without it (pass") == record["passes"]
     assert _mean_error(first, scene) > 3.0
     assert _mean_error(result, scene) < 0.5 * _mean_error(first, scene)
     assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
