@@ -14,6 +14,7 @@ __all__ = [
     "GaugeWarning",
     "ImageReadError",
     "InputError",
+    "InterreflectionWarning",
     "LossyInputWarning",
     "LowSolvedWarning",
     "OutputError",
@@ -68,3 +69,7 @@ class EncodingWarning(ColorPSWarning):
 
 class ExposureWarning(ColorPSWarning):
     """Scene and gauge images were exposed differently (their EXIF says so)."""
+
+
+class InterreflectionWarning(ColorPSWarning):
+    """An object that lights itself was solved with its bounced light left in."""

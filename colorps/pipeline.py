@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
@@ -29,7 +30,7 @@ import numpy as np
 
 from . import __version__
 from ._blas import one_blas_thread
-from .errors import InputError
+from .errors import InputError, InterreflectionWarning
 from .figures import overview_step
 from .gauge import Gauge, find_sphere, rim_margin
 from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
@@ -37,8 +38,10 @@ from .hygiene import check_contents, check_exposures, check_names, check_stack_e
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
 from .interreflection import (
+    MIN_LIT_CELLS,
     PASSES_AGAIN,
     moved_by,
+    sees_itself,
     with_scale_uncertainty,
     without_interreflections,
 )
@@ -452,10 +455,14 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
     then), the measurements it was solved from (None: as read), report.json's record,
     and how far taking it out moved each normal (:func:`interreflection.moved_by`;
     None: not taken out), for a result solved again from those measurements."""
-    if not run.options.interreflections or plan.rows is not None or along_rays:
-        why = ("--no-interreflections" if not run.options.interreflections else
-               "a tiled run" if plan.rows is not None else "matched along the camera's rays")
-        return result, None, dict(skipped=why), None
+    if not run.options.interreflections:
+        return result, None, dict(skipped="--no-interreflections"), None
+    if plan.rows is not None or along_rays:
+        tiled = plan.rows is not None
+        return result, None, _left_in(
+            result, "a tiled run" if tiled else "a run matched along the camera's rays",
+            " (untiled, without --tile and with enough --memory-limit, that light is taken "
+            "out)" if tiled else ""), None
     corrected, solved_from, record = without_interreflections(
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
         lambda stack, pixels, scale: reconstruct(
@@ -463,6 +470,17 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
             mask=mask if pixels is None else pixels), gauge, gauge_stack, progress=progress)
     return corrected, solved_from, record, \
         None if solved_from is None else moved_by(corrected, result)
+
+
+def _left_in(result, why: str, advice: str) -> dict:
+    """report.json's record of a run that cannot take the bounced light out
+    (``why``), with a warning (and ``advice``) when the solved object sees itself."""
+    share = sees_itself(result.normals, result.solved)
+    if share >= MIN_LIT_CELLS:
+        warnings.warn(f"{share:.0%} of the object sees itself, but {why} leaves the light it "
+                      "bounces onto itself in: normals in its folds may lean towards the walls "
+                      f"that light them{advice}", InterreflectionWarning, stacklevel=3)
+    return dict(skipped=why, sees_itself=share)
 
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,

@@ -13,6 +13,7 @@ from colorps.bounce import cell_grid, cell_heights, gather
 from colorps.cli import main
 from colorps.interreflection import (
     BETTER_BY,
+    MIN_LIT_CELLS,
     PROBE_PIXELS,
     SCALE_FACTORS,
     SCALE_UNCERTAINTY,
@@ -235,3 +236,21 @@ def test_a_finish_that_cannot_be_fitted_again_keeps_the_result(monkeypatch):
     assert out[0] is result and out[1] == "run"
     assert bounced["with_scene_finish"]["kept"] is False
     assert "12 usable" in bounced["with_scene_finish"]["failed"]
+
+
+def test_a_tiled_run_says_it_left_the_bounced_light_in(bounced_folds, tmp_path, capsys):
+    """A tiled run cannot take the bounced light out: of an object that sees
+    itself it says so, on the console and in report.json, and still solves it."""
+    scene, stack, gauge_stack, gauge = bounced_folds
+    for k, (image, ball) in enumerate(zip(stack, gauge_stack)):
+        write_image(tmp_path / f"scene_{k:02d}.exr", image)
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
+                 str(tmp_path / "gauge_*.exr"), "--sphere", ",".join(map(str, gauge.sphere)),
+                 "--mask", str(tmp_path / "mask.png"), "--tile", "48",
+                 "--out", str(tmp_path / "out"), "--quiet", "--no-height",
+                 "--no-viewer"]) == 0
+    assert "sees itself, but a tiled run leaves the light" in capsys.readouterr().err
+    record = json.loads((tmp_path / "out" / "report.json").read_text())["interreflections"]
+    assert record["skipped"] == "a tiled run" and record["sees_itself"] > MIN_LIT_CELLS
