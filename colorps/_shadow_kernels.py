@@ -37,9 +37,15 @@ Window = namedtuple("Window", "cy cx reach step")
 
 
 @njit(cache=True)
+def _clipped_at(clipped, gy, gx, i):
+    """Whether light i is clipped at gauge pixel (gy, gx)."""
+    return (clipped[gy, gx, i >> 6] >> np.uint64(i & 63)) & np.uint64(1) != 0
+
+
+@njit(cache=True)
 def _lit(keep, clipped, p, gy, gx, i):
     """Whether light i is in the pair's L: kept by pixel p, not clipped at (gy, gx)."""
-    return keep[p, i] and not (clipped[gy, gx, i >> 6] >> np.uint64(i & 63)) & np.uint64(1)
+    return keep[p, i] and not _clipped_at(clipped, gy, gx, i)
 
 
 @njit(cache=True, parallel=True)
@@ -76,12 +82,10 @@ def masked_search(pixels, gauge, window, min_lights, out_row, out_d2):
                 gx = cx[p] + step * dj
                 if gx < 0 or gx >= wg:
                     continue
-                if _any_clipped(clipped, gy, gx):
-                    d2 = _clipped_d2(pixels, gauge, p, gy, gx, min_lights, best_d2)
-                elif kept < min_lights:
+                any_clipped = _any_clipped(clipped, gy, gx)
+                if not any_clipped and kept < min_lights:
                     continue
-                else:
-                    d2 = _kept_d2(pixels, gauge, p, gy, gx, ss, best_d2)
+                d2 = _pair_d2(pixels, gauge, p, gy, gx, ss, any_clipped, min_lights, best_d2)
                 if d2 < best_d2:
                     best, best_d2 = gy * wg + gx, d2
         out_row[p] = best
@@ -98,65 +102,41 @@ def _any_clipped(clipped, gy, gx):
 
 
 @njit(cache=True, inline="always")
-def _kept_d2(pixels, gauge, p, gy, gx, ss, best_d2):
-    """D^2 of pixel p and gauge pixel (gy, gx) over p's kept lights (none of
-    them clipped there), ``ss`` the pixel's squared norms per band over them;
-    at least ``best_d2`` once the sum reaches it, inf when a band is unusable."""
-    scene_ov, ys, xs, bands, keep = pixels
-    gauge_ov, usable, _ = gauge
-    y, x = ys[p], xs[p]
-    d2 = 0.0
-    for b in range(gauge_ov.shape[2]):
-        if not bands[p, b]:
-            continue
-        if not usable[gy, gx, b]:
-            return np.inf
-        dot, gg = 0.0, 0.0
-        for i in range(gauge_ov.shape[3]):
-            if keep[p, i]:
-                g = np.float64(gauge_ov[gy, gx, b, i])
-                dot += np.float64(scene_ov[y, x, b, i]) * g
-                gg += g * g
-        if gg <= 0.0 or ss[b] <= 0.0:
-            return np.inf
-        d2 += 2.0 - 2.0 * dot / np.sqrt(ss[b] * gg)
-        if d2 >= best_d2:
-            return d2
-    return d2
-
-
-@njit(cache=True, inline="always")
-def _clipped_d2(pixels, gauge, p, gy, gx, min_lights, best_d2):
-    """D^2 of pixel p and gauge pixel (gy, gx) over L, p's kept lights but for
-    those clipped at (gy, gx); inf when L holds fewer than ``min_lights`` or a
-    band is unusable, at least ``best_d2`` once the sum reaches it."""
+def _pair_d2(pixels, gauge, p, gy, gx, ss, any_clipped, min_lights, best_d2):
+    """D^2 of pixel p and gauge pixel (gy, gx) over L: p's kept lights, but for
+    those clipped at (gy, gx) when it has any (``any_clipped``; else ``ss``
+    holds p's squared norms per band over its kept lights, summed once). Inf
+    when L holds fewer than ``min_lights`` or a band is unusable; at least
+    ``best_d2`` once the sum reaches it."""
     scene_ov, ys, xs, bands, keep = pixels
     gauge_ov, usable, clipped = gauge
     y, x = ys[p], xs[p]
     m = gauge_ov.shape[3]
-    n_lights = 0
-    for i in range(m):
-        if _lit(keep, clipped, p, gy, gx, i):
-            n_lights += 1
-    if n_lights < min_lights:
-        return np.inf
+    if any_clipped:
+        n_lights = 0
+        for i in range(m):
+            if _lit(keep, clipped, p, gy, gx, i):
+                n_lights += 1
+        if n_lights < min_lights:
+            return np.inf
     d2 = 0.0
     for b in range(gauge_ov.shape[2]):
         if not bands[p, b]:
             continue
         if not usable[gy, gx, b]:
             return np.inf
-        dot, gg, ss = 0.0, 0.0, 0.0
+        dot, gg, s2 = 0.0, 0.0, 0.0
         for i in range(m):
-            if _lit(keep, clipped, p, gy, gx, i):
+            if keep[p, i] and not (any_clipped and _clipped_at(clipped, gy, gx, i)):
                 g = np.float64(gauge_ov[gy, gx, b, i])
                 s = np.float64(scene_ov[y, x, b, i])
                 dot += s * g
                 gg += g * g
-                ss += s * s
-        if gg <= 0.0 or ss <= 0.0:
+                s2 += s * s
+        norm2 = s2 if any_clipped else ss[b]
+        if gg <= 0.0 or norm2 <= 0.0:
             return np.inf
-        d2 += 2.0 - 2.0 * dot / np.sqrt(ss * gg)
+        d2 += 2.0 - 2.0 * dot / np.sqrt(norm2 * gg)
         if d2 >= best_d2:
             return d2
     return d2
