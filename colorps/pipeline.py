@@ -465,11 +465,18 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
             "out)" if tiled else ""), None
     corrected, solved_from, record = without_interreflections(
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
-        lambda stack, pixels, scale: reconstruct(
-            stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
-            mask=mask if pixels is None else pixels), gauge, gauge_stack, progress=progress)
+        _solve_with(gauge_stack, gauge, run, mask, progress), gauge, gauge_stack,
+        progress=progress)
     return corrected, solved_from, record, \
         None if solved_from is None else moved_by(corrected, result)
+
+
+def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool):
+    """The run's solve against ``gauge`` as :func:`interreflection.without_interreflections`
+    calls it: ``solve(stack, pixels, model_scale)``, ``pixels`` None for ``mask``."""
+    return lambda stack, pixels, scale: reconstruct(
+        stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
+        mask=mask if pixels is None else pixels)
 
 
 def _left_in(result, why: str, advice: str) -> dict:
@@ -490,7 +497,7 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
     and kept if clearly better (:func:`gauge_check.judge_finish`, which records
     it in ``checked``). ``scene``: the measurements ``result`` was solved from
     (None: a tiled run's, left in its files, not tried). Returns (result,
-    settings, finish and its fits or None)."""
+    settings, finish and its fits or None, the gauge's lights or None)."""
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
@@ -510,26 +517,20 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
 
 def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
                    inputs: CaptureFiles, progress: bool, bounced: dict):
-    """The gauge's lights' result (``finish``: the scene's own, fitted once a
-    gauge of another finish had taken its bounced light out), solved again
-    without the bounced light estimated anew from its shape and scaled against
-    the scene's own finish (from the measurements as read, ``read_scene()``),
-    that finish fitted once more (:func:`virtual.with_own_finish`): another
-    finish's normals give the bounced light another shape, and its shadows
-    another scale. Kept when its finish explains the scene at least as well.
-    Returns (result, settings, finish and its fits); its record is
-    ``bounced``'s ``with_scene_finish``."""
+    """The gauge's lights' result (``finish``: the scene's own) solved again, the
+    bounced light estimated from its shape (another finish's normals had given it
+    another), scaled against that finish, taken out of the measurements as read
+    (``read_scene()``), the finish fitted again (:func:`virtual.with_own_finish`);
+    kept when it explains the scene at least as well. Returns (result, settings,
+    finish and its fits); its record is ``bounced``'s ``with_scene_finish``."""
     if inputs.camera is not None and finish[0].depends_on_view:
         bounced["with_scene_finish"] = dict(skipped="matched along the camera's rays")
         return result, run, finish
     virtual = Gauge.virtual(lights, radius=inputs.virtual_radius, bands=result.albedo.shape[-1],
                             brdf=finish[0])
     _, corrected, record = without_interreflections(
-        read_scene, result,
-        lambda stack, pixels, scale: reconstruct(
-            stack, virtual.stack, virtual, run, model_scale=scale, progress=progress,
-            mask=mask if pixels is None else pixels), virtual, virtual.stack,
-        passes=PASSES_AGAIN, solved_as_read=False, progress=progress)
+        read_scene, result, _solve_with(virtual.stack, virtual, run, mask, progress), virtual,
+        virtual.stack, passes=PASSES_AGAIN, solved_as_read=False, progress=progress)
     bounced["with_scene_finish"] = record
     if corrected is None:
         return result, run, finish
