@@ -333,7 +333,7 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
                 scene, run = _read_as_linear(scene, stacks, run, progress)
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
-                                               progress=progress)
+                                               progress=progress, camera=inputs.camera)
         return gauge, gauge.stack, run, (brdf, fits), checked, scene
     gauge_stack, _ = read_stack(stacks.gauge_paths, encoding, name="gauge", progress=progress)
     check_contents(gauge_stack, stacks.gauge_paths, "gauge")

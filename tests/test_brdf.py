@@ -409,9 +409,48 @@ def test_a_simpler_finish_replaces_the_fit_only_where_clearly_better(lights, mon
     stack = np.ones((len(lights.directions), 4, 4, 1), dtype=np.float32)
     brdf, history = fit_scene_brdf(stack, lights, Options(read_noise=0.001, gain=0.0),
                                    fits=2)
-    assert history[-1]["kept"] and len(history[-1]["candidates"]) == 5  # 3 roughnesses
+    # The fit, its flat falloff, plain finishes at 3 roughnesses of the grid and,
+    # all matching alike here, the ones tried between them.
+    assert history[-1]["kept"] and len(history[-1]["candidates"]) >= 5
     if chosen == "flat":
         assert brdf.falloff == BRDF.lambert().falloff and brdf.specular == fitted.specular
         assert brdf.roughness == fitted.roughness
     else:
         assert brdf == fitted
+
+
+@pytest.mark.parametrize("camera", [None, "lens"])
+def test_a_plain_finish_between_the_grids_values_is_found(lights, monkeypatch, camera):
+    """The fit's roughness is one of the grid's; a scene between them (Oren-Nayar
+    0.15) had the fit take 0.1 and a darker falloff instead, 2.3 degrees off.
+    The plain finishes are then also tried between the grid's values around the
+    best of them, and the one the scene matches best replaces the fit where it
+    is clearly better; through a lens (whose matches along the axis favour a
+    rougher finish) only the grid's values are tried."""
+    import colorps.virtual as virtual
+    from colorps.camera import Camera
+
+    fitted = BRDF(falloff=(0.2, 0.6, 0.9, 0.95, 1.0, 1.0, 1.0, 1.0), roughness=0.1)
+    rounds = iter([2.0, 1.0])
+    tried = []
+
+    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds):
+        return fitted, dict(pixels=1, rms_relative=0.1, match_residual_median=next(rounds))
+
+    def fake_match(data, lights, brdf, quick, mask, radius):
+        if brdf == fitted or brdf.falloff != BRDF.lambert().falloff:
+            return 1.0
+        tried.append(brdf.roughness)  # the scene's roughness is 0.153
+        return 0.9 + 8.0 * (brdf.roughness - 0.153) ** 2 + 0.001 * np.sin(900 * brdf.roughness)
+
+    monkeypatch.setattr(virtual, "_fit_round", fake_round)
+    monkeypatch.setattr(virtual, "_match_residual", fake_match)
+    stack = np.ones((len(lights.directions), 4, 4, 1), dtype=np.float32)
+    brdf, _ = fit_scene_brdf(stack, lights, Options(read_noise=0.001, gain=0.0), fits=2,
+                             camera=None if camera is None else Camera(300.0, 300.0))
+    assert brdf.falloff == BRDF.lambert().falloff and not any(brdf.specular)
+    if camera is None:
+        assert abs(brdf.roughness - 0.153) < 0.005
+        assert len(tried) <= 16  # a few matches, not a scan
+    else:
+        assert brdf.roughness == 0.2 and set(tried) == {0.1, 0.2}  # (0: Lambert, beaten)

@@ -25,9 +25,9 @@ def coloured_lights(m=12):
                           np.concatenate([low.colours, high.colours])), colours
 
 
-def sphere_stack(lighting, brdf="lambert", noise=0.003):
+def sphere_stack(lighting, brdf="lambert", noise=0.003, roughness=0.3):
     ball = synth.sphere_surface((130, 140), RADIUS, centre=CENTRE)
-    return synth.render(ball, lighting, brdf=brdf, roughness=0.3, noise=noise, seed=1)
+    return synth.render(ball, lighting, brdf=brdf, roughness=roughness, noise=noise, seed=1)
 
 
 @pytest.mark.parametrize("eight_bit", [False, True])
@@ -45,19 +45,24 @@ def test_directions_and_intensities_of_a_lambertian_sphere(eight_bit):
     assert max(f.residual for f in found) < (0.03 if eight_bit else 0.01)
 
 
-def test_a_rough_sphere_is_fitted_with_its_roughness():
+@pytest.mark.parametrize("brdf, sigma", [("oren-nayar", 0.3), ("oren-nayar", 0.15),
+                                         ("lambert", 0.0)])
+def test_a_rough_sphere_is_fitted_with_its_roughness(brdf, sigma):
     """An Oren-Nayar sphere (sigma 0.3) is not Lambertian: fitted as one, its
     directions were up to 0.9 degrees off and the residual about 5 %. Fitted with
     the roughness that explains it best (one for all the images), the directions
     are within 0.05 degrees and the intensities within 0.2 %, as on a Lambertian
-    sphere; a Lambertian sphere is fitted as one."""
+    sphere; a Lambertian sphere is fitted as one. A roughness between the
+    grid's values (0.15) is found too: taken at the grid's 0.1, a 48-light
+    sphere's directions were 0.17 degrees off."""
     lighting, colours = coloured_lights()
-    for brdf, sigma in (("oren-nayar", 0.3), ("lambert", 0.0)):
-        lights, found = matte_sphere_lights(sphere_stack(lighting, brdf), (*CENTRE, RADIUS))
-        assert angular_error(lights.directions, lighting.directions[:, 0]).max() < 0.05
-        assert np.abs(lights.intensities / colours - 1).max() < 0.002
-        assert {f.roughness for f in found} == {sigma}
-        assert max(f.residual for f in found) < 0.01
+    stack = sphere_stack(lighting, brdf, roughness=sigma)
+    lights, found = matte_sphere_lights(stack, (*CENTRE, RADIUS))
+    assert angular_error(lights.directions, lighting.directions[:, 0]).max() < 0.05
+    assert np.abs(lights.intensities / colours - 1).max() < 0.002
+    assert len({f.roughness for f in found}) == 1
+    assert abs(found[0].roughness - sigma) < 0.01
+    assert max(f.residual for f in found) < 0.01
 
 
 def test_an_unlit_image_is_refused_by_name():
