@@ -57,7 +57,7 @@ ROUGHNESS_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
 #: Where a roughness between ROUGHNESS_GRID's values is sought
 #: (:func:`refined_roughness`), to this many radians, and then the vertex of a
 #: parabola through the values tried this close to the best.
-ROUGHNESS_TOLERANCE = 0.005
+ROUGHNESS_TOLERANCE = 0.01
 ROUGHNESS_WINDOW = 0.03
 #: A highlight peaking under this fraction of the diffuse albedo is too faint
 #: for the view direction to matter (:attr:`BRDF.depends_on_view`).

@@ -339,7 +339,7 @@ def test_a_rough_scene_is_fitted_from_a_lambertian_start(lights, monkeypatch):
     monkeypatch.undo()
     monkeypatch.setattr(virtual, "SETTLE_ROUNDS", 0)
     rescued, _ = fit_scene_brdf(stack, lights, options, mask=scene.mask, radius=60)
-    assert rescued.roughness == 0.3 and error(rescued) < 0.3 * error(free)
+    assert abs(rescued.roughness - 0.3) < 0.01 and error(rescued) < 0.3 * error(free)
 
 
 def test_over_relaxed_rounds_leave_the_falloff_tilt_valley(lights, monkeypatch):
