@@ -170,8 +170,9 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
             result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress)
         corrected = result
         if virtual is not None and solved_from is not None:  # its finish fitted again
-            result, run, virtual = with_own_finish(solved_from, stacks.light_set, run, mask=mask,
-                                                   radius=inputs.virtual_radius, progress=progress)
+            result, run, virtual = with_own_finish(
+                solved_from, stacks.light_set, run, mask=mask, radius=inputs.virtual_radius,
+                camera=inputs.camera, progress=progress)
         if inputs.lights is None and run.options.finish_check and \
                 finish_differs(result.stats.model_scale, checked):
             if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
@@ -492,12 +493,11 @@ def _left_in(result, why: str, advice: str) -> dict:
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
                        mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
-    """A run whose matte gauge explains its scene poorly, solved again with the
-    gauge's lights and the scene's own finish (:func:`virtual.with_gauge_lights`)
-    and kept if clearly better (:func:`gauge_check.judge_finish`, which records
-    it in ``checked``). ``scene``: the measurements ``result`` was solved from
-    (None: a tiled run's, left in its files, not tried). Returns (result,
-    settings, finish and its fits or None, the gauge's lights or None)."""
+    """A run whose matte gauge explains its scene poorly, solved again with the gauge's
+    lights and the scene's own finish (:func:`virtual.with_gauge_lights`) and kept if
+    clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``).
+    ``scene``: what ``result`` was solved from (None: a tiled run's, not tried). Returns
+    (result, settings, finish and its fits or None, the gauge's lights or None)."""
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
