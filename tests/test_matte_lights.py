@@ -65,6 +65,25 @@ def test_a_rough_sphere_is_fitted_with_its_roughness(brdf, sigma):
     assert max(f.residual for f in found) < 0.01
 
 
+def test_a_sheen_does_not_pull_the_lights():
+    """Real matte paint has a sheen. A sphere of Oren-Nayar 0.2 under a faint
+    GGX coat (F0 0.04, alpha 0.25) fitted on every lit pixel had its directions
+    pulled towards the highlights (0.085 degrees off on 48 lights, 0.19 at
+    most) and its roughness to 0.16; the pixels about each image's halfway
+    vector are left out (HIGHLIGHT_ANGLE)."""
+    from colorps.finishes import Gloss
+
+    lighting, colours = coloured_lights()
+    ball = synth.sphere_surface((130, 140), RADIUS, centre=CENTRE)
+    stack = synth.render(ball, lighting, brdf="oren-nayar", roughness=0.2, noise=0.003, seed=1,
+                         gloss=Gloss(0.04, "ggx", alpha=0.25))
+    lights, found = matte_sphere_lights(stack, (*CENTRE, RADIUS))
+    assert angular_error(lights.directions, lighting.directions[:, 0]).max() < 0.05
+    ratio = lights.intensities / colours  # the coat's light makes them all 0.6 % brighter
+    assert np.abs(ratio / ratio.mean() - 1).max() < 0.002
+    assert abs(found[0].roughness - 0.2) < 0.015
+
+
 def test_an_unlit_image_is_refused_by_name():
     lighting, _ = coloured_lights(3)
     stack = sphere_stack(lighting)
