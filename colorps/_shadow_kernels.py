@@ -127,7 +127,7 @@ def _pair_d2(pixels, gauge, p, gy, gx, ss, any_clipped, min_lights, best_d2):
             return np.inf
         dot, gg, s2 = 0.0, 0.0, 0.0
         for i in range(m):
-            if keep[p, i] and not (any_clipped and _clipped_at(clipped, gy, gx, i)):
+            if _lit(keep, clipped, p, gy, gx, i) if any_clipped else keep[p, i]:
                 g = np.float64(gauge_ov[gy, gx, b, i])
                 s = np.float64(scene_ov[y, x, b, i])
                 dot += s * g

@@ -295,20 +295,21 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
                       "the virtual gauge is Lambertian", file=sys.stderr)
             return BRDF.lambert(), history
         data, mask = _match_sample(data, mask, rng, CANDIDATE_PIXELS)
-        scored = {finish: _match_residual(data, lights, finish, quick, mask,
-                                          min(radius, CANDIDATE_RADIUS))
-                  for finish in _simpler_finishes(brdf)}
+        scored: dict[BRDF, float] = {}
+
+        def score(finish: BRDF) -> float:  # the scene's median match residual, once each
+            if finish not in scored:
+                scored[finish] = _match_residual(data, lights, finish, quick, mask,
+                                                 min(radius, CANDIDATE_RADIUS))
+            return scored[finish]
+
+        for finish in _simpler_finishes(brdf):
+            score(finish)
         plain = {f.roughness: value for f, value in scored.items()
                  if f == BRDF(roughness=f.roughness)}
         if plain and camera is None:
-            def plain_cost(roughness: float) -> float:
-                finish = BRDF(roughness=roughness)
-                if finish not in scored:
-                    scored[finish] = _match_residual(data, lights, finish, quick, mask,
-                                                     min(radius, CANDIDATE_RADIUS))
-                return scored[finish]
-
-            refined_roughness(plain_cost, min(plain, key=plain.get))
+            refined_roughness(lambda roughness: score(BRDF(roughness=roughness)),
+                              min(plain, key=plain.get))
         chosen = min((f for f in scored if f == brdf or scored[f] < SIMPLER_GAIN * scored[brdf]),
                      key=scored.get)
         history[-1]["candidates"] = [dict(match_residual_median=value, **finish.as_dict())
