@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from colorps import Gauge, angular_error, reconstruct, synth
+from colorps import Gauge, angular_error, interreflection, reconstruct, synth
 from colorps.bounce import cell_grid, cell_heights, gather
 from colorps.cli import main
 from colorps.interreflection import (
@@ -145,6 +145,28 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds, capsys):
     moved = angular_error(result.normals[ok], first.normals[ok])
     assert (result.uncertainty[ok] >= SCALE_UNCERTAINTY * moved - 1e-4).all()
     assert np.mean(error <= result.uncertainty[ok]) > 0.6
+
+
+def test_a_scale_the_shadows_put_too_high_is_brought_back_by_the_probe(bounced_folds,
+                                                                       monkeypatch):
+    """Partly lit shadow edges (a lens's blur, a light's size) put the shadows'
+    scale too high: a pot path-traced by Mitsuba 3 fitted 2.5 for about 1. The
+    probe's lower factors find the scale the gauge explains best and the
+    bounced light is still taken out (with the old factors, 1 and up, it stayed in)."""
+    scene, stack, gauge_stack, gauge = bounced_folds
+    fitted = interreflection.bounce_scale
+    monkeypatch.setattr(interreflection, "bounce_scale", lambda *args: 2.5 * fitted(*args))
+
+    def solve(images, pixels=None, model_scale=None):
+        return reconstruct(images, gauge_stack, gauge, model_scale=model_scale,
+                           mask=scene.mask if pixels is None else pixels)
+
+    first = solve(stack)
+    result, _, record = without_interreflections(lambda: stack, first, solve, gauge,
+                                                 gauge_stack)
+    assert min(SCALE_FACTORS) * 2.5 <= 1.0  # the true scale (0.5) is within reach
+    assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
+    assert _mean_error(result, scene) < 0.3 * _mean_error(first, scene)
 
 
 def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
