@@ -33,9 +33,10 @@ import numpy as np
 from .errors import EncodingWarning, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
+from .noise import NoiseModel, estimate_noise
 
 __all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "finish_differs",
-           "judge_finish", "lambertian_fit", "lights_fit", "sphere_fit"]
+           "judge_finish", "lambertian_fit", "lights_fit", "noisier_scene", "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -64,6 +65,20 @@ LIGHTS_FIT_PIXELS = 4000
 #: coat of the glossy set 0.24; POOR_FIT is where it stops looking like a sphere).
 FINISH_HINT_SCALE = 1.5
 MATTE_FIT = 0.1
+#: A scene whose own pixel-to-pixel scatter (:func:`colorps.noise.estimate_noise`
+#: on its masked pixels, as ``--lights`` runs measure it) has at least this many
+#: times the sigma of the gauge's noise model, at the scene's median measurement,
+#: is noisier than its gauge: its residuals in the gauge's noise units overstate
+#: its misfit by as much, and :func:`finish_differs` divides the model scale by
+#: it. A gauge path-traced without Monte Carlo noise (a lone sphere under
+#: directional lights) against a scene that carries its bounced light's: 8.1-9.6
+#: (Mitsuba 3, benchmarks/independent_renders.py), where the route of the gauge's
+#: lights took a glossy pot from 0.82 to 3.16 degrees median. Scene and gauge of
+#: one camera: about 1 (the textured sample, 1.04); under this factor, texture
+#: the estimate takes for noise cannot hide another finish.
+NOISIER_SCENE = 2.0
+#: Measurements (at most) whose median is the scene's level for that comparison.
+NOISE_LEVEL_SAMPLE = 100_000
 #: The solution with the gauge's lights and the scene's own finish is taken when
 #: its median residual (noise units) is under this fraction of the gauge's. On
 #: the gauges a little off the scene's finish it was 0.53-0.80 of it, and the
@@ -290,9 +305,42 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
 
 def finish_differs(model_scale: float, record: dict) -> bool:
     """A gauge-mode run that looks like a scene of another finish than its matte
-    gauge's (FINISH_HINT_SCALE, MATTE_FIT); ``record`` is :func:`check_gauge`'s."""
+    gauge's (FINISH_HINT_SCALE, MATTE_FIT); ``record`` is :func:`check_gauge`'s,
+    with the scene's ``scene_noise_over_gauge`` once :func:`noisier_scene` measured
+    it (NOISIER_SCENE)."""
     fit = record.get("sphere_fit_residual")
+    noisier = record.get("scene_noise_over_gauge") or 1.0
+    if noisier >= NOISIER_SCENE:
+        model_scale /= noisier
     return bool(model_scale > FINISH_HINT_SCALE and fit is not None and fit < MATTE_FIT)
+
+
+def noisier_scene(scene: np.ndarray, mask: np.ndarray | None, stats, record: dict,
+                  first_file: Path) -> bool:
+    """Whether a run that :func:`finish_differs` flags (its RunStatistics ``stats``)
+    is only a scene noisier than its gauge (NOISIER_SCENE): the (m, H, W, c)
+    ``scene``'s own noise sigma over the run's (the gauge's) at the scene's median
+    measurement, added to ``record`` as ``scene_noise_over_gauge``; warns when so."""
+    model_scale = stats.model_scale
+    usable = np.isfinite(scene).all(axis=3) & (scene > 0).all(axis=3)
+    if mask is not None:
+        usable &= np.asarray(mask, dtype=bool)
+    gauge_noise = NoiseModel(**stats.noise)
+    own = estimate_noise(scene, usable, gauge_noise)
+    values = scene[usable]
+    level = float(np.median(values[::max(1, values.size // NOISE_LEVEL_SAMPLE)]))
+    ratio = record["scene_noise_over_gauge"] = float(own.sigma(level) / gauge_noise.sigma(level))
+    if ratio < NOISIER_SCENE or finish_differs(model_scale, record):
+        return False
+    warnings.warn(
+        f"{first_file}: the scene matches the gauge at {model_scale:.1f} noise units (median; "
+        f"about 1 where the gauge explains it), but its own pixel-to-pixel scatter is "
+        f"{ratio:.1f} times the gauge's noise, which explains it: the scene is noisier than "
+        "its gauge (a gauge rendered without the scene's Monte Carlo noise, or photographed "
+        "at a lower ISO), not of another finish. Residuals and quality.exr are in the "
+        "gauge's noise units; report.json's gauge_check.scene_noise_over_gauge says so",
+        GaugeWarning, stacklevel=3)
+    return True
 
 
 def judge_finish(record: dict, first_file: Path) -> bool:

@@ -33,7 +33,13 @@ from ._blas import one_blas_thread
 from .errors import InputError, InterreflectionWarning
 from .figures import overview_step
 from .gauge import Gauge, find_sphere, rim_margin
-from .gauge_check import check_gauge, check_lights, finish_differs, judge_finish
+from .gauge_check import (
+    check_gauge,
+    check_lights,
+    finish_differs,
+    judge_finish,
+    noisier_scene,
+)
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -69,7 +75,7 @@ from .outputs import (
 from .pairing import check_natural_order, pair_lights, pairing_record
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
-from .results import Reconstruction, RunClock
+from .results import Reconstruction, RunClock, check_solved
 from .tiles import StackFiles, dask_client, reconstruct_tiled
 from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
 
@@ -165,7 +171,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
             result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
                                                  (stacks.light_set, virtual, inputs.camera),
                                                  progress)
-        _check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+        check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
         result, solved_from, bounced, moved = _without_interreflections(
             result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress)
         corrected = result
@@ -431,23 +437,6 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
     return result if finished is None else finished.result()
 
 
-def _check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:
-    """Refuse a run that solved nothing, saying why."""
-    stats = result.stats
-    if stats.solved:
-        return
-    reasons = {k: v for k, v in stats.pixels_by_reason.items() if v and k != "background"}
-    if stats.table_size == 0 and gauge_paths:
-        raise InputError(f"{gauge_paths[0]}: no gauge pixel has every band usable "
-                         "(clipped, too dark or invalid), so nothing can be matched; check "
-                         "the gauge images and --sphere")
-    worst = max(reasons, key=reasons.get) if reasons else "background"
-    where = f"mask {mask_path}" if mask_path else "the scene"
-    raise InputError(f"{scene_paths[0]}: no pixel of {where} could be solved (mostly "
-                     f"'{worst}': {reasons.get(worst, 0)} pixels); see --dark-level, "
-                     "--clip-level and --max-residual")
-
-
 def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge,
                               run: Resolved, mask, plan: TilePlan, along_rays: bool,
                               progress: bool):
@@ -495,9 +484,13 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
                        mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
     """A run whose matte gauge explains its scene poorly, solved again with the gauge's
     lights and the scene's own finish (:func:`virtual.with_gauge_lights`) and kept if
-    clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``).
-    ``scene``: what ``result`` was solved from (None: a tiled run's, not tried). Returns
-    (result, settings, finish and its fits or None, the gauge's lights or None)."""
+    clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``),
+    unless :func:`gauge_check.noisier_scene`. ``scene``: what ``result`` was solved from
+    (None: a tiled run's, not tried). Returns (result, settings, finish and its fits or
+    None, the gauge's lights or None)."""
+    if scene is not None and noisier_scene(scene, mask, result.stats, checked,
+                                           stacks.scene_paths[0]):
+        return result, run, None, None
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
@@ -571,10 +564,7 @@ def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
     """
     check_height_targets(out, mesh, overwrite=overwrite)  # fail before the work
     normals, _ = read_image(normals_path, "linear")
-    if normals.shape[2] < 3:
-        raise InputError(f"{normals_path}: a normal map needs 3 channels (X, Y, Z), "
-                         f"got {normals.shape[2]}")
-    if normals.shape[2] > 4:
+    if not 3 <= normals.shape[2] <= 4:  # (a fourth: alpha)
         raise InputError(f"{normals_path}: a normal map has 3 channels (X, Y, Z), got "
                          f"{normals.shape[2]}")
     normals = normals[..., :3]

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import light_masks
-from .errors import LowSolvedWarning
+from .errors import InputError, LowSolvedWarning
 from .matching import Matches, MatchGroup
 from .reasons import reason_counts
 
@@ -29,6 +29,7 @@ __all__ = [
     "ReconstructionStats",
     "RunClock",
     "Timings",
+    "check_solved",
     "combine_statistics",
     "default_band_names",
     "low_solved_message",
@@ -402,6 +403,24 @@ def low_solved_message(reason: np.ndarray, mask: np.ndarray, solved: np.ndarray
     worst = max(counts, key=counts.get)
     return (f"only {solved.sum() / n_masked:.0%} of the {n_masked} masked pixels were "
             f"solved (mostly '{worst}': {counts[worst]} pixels)")
+
+
+def check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:
+    """Refuse a run that solved nothing (InputError), saying why: its files, and
+    the most common reason of its unsolved pixels."""
+    stats = result.stats
+    if stats.solved:
+        return
+    reasons = {k: v for k, v in stats.pixels_by_reason.items() if v and k != "background"}
+    if stats.table_size == 0 and gauge_paths:
+        raise InputError(f"{gauge_paths[0]}: no gauge pixel has every band usable "
+                         "(clipped, too dark or invalid), so nothing can be matched; check "
+                         "the gauge images and --sphere")
+    worst = max(reasons, key=reasons.get) if reasons else "background"
+    where = f"mask {mask_path}" if mask_path else "the scene"
+    raise InputError(f"{scene_paths[0]}: no pixel of {where} could be solved (mostly "
+                     f"'{worst}': {reasons.get(worst, 0)} pixels); see --dark-level, "
+                     "--clip-level and --max-residual")
 
 
 def _median(values: np.ndarray) -> float | None:
