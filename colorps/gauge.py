@@ -405,8 +405,11 @@ def _brightest(data: np.ndarray) -> tuple[np.ndarray, float]:
     32-light gauge's measurements spiked had the sphere refused as "two bright
     regions" and the rim margin measured 4.4 px instead of 1.2), and its
     BRIGHT_PERCENTILE (the bright level)."""
-    brightest = spike_free(np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0)
-                           .max(axis=(0, 3)))
+    brightest = None
+    for image in data:  # (one image's temporaries at a time: a whole frame's are large)
+        value = np.where(np.isfinite(image), image, 0.0).max(axis=-1)
+        brightest = value if brightest is None else np.maximum(brightest, value, out=brightest)
+    brightest = spike_free(brightest)
     return brightest, float(np.percentile(brightest, BRIGHT_PERCENTILE))
 
 

@@ -275,8 +275,7 @@ class Capture:
             self._light_sets.move_to_end(lights)
         else:
             if self._gauge_variance is None:  # per measurement, computed once
-                model = self.gauge_model or self.model
-                self._gauge_variance = np.ascontiguousarray(model.sigma(self.gauge_ov) ** 2)
+                self._gauge_variance = self._variance()
             hg, wg, n_bands, _ = self.gauge_ov.shape
             norm2 = np.empty((hg, wg, n_bands))
             variance = np.empty((hg, wg, n_bands), dtype=np.float32)
@@ -289,6 +288,18 @@ class Capture:
                                                  norm2=norm2, variance=variance, usable=usable)
             self._forget_light_sets(keep=lights)
         return self._light_sets[lights]
+
+    def _variance(self) -> np.ndarray:
+        """(Hg, Wg, B, m) float32 variance of every gauge measurement under the
+        gauge's noise model, on the pixels with a band that may be usable (0
+        elsewhere: a gauge photographed in a whole frame is mostly background)."""
+        model = self.gauge_model or self.model
+        inside = self.gauge_valid.any(axis=-1)
+        if self.gauge_unclipped is not None:
+            inside |= self.gauge_unclipped.any(axis=-1)
+        variance = np.zeros(self.gauge_ov.shape, dtype=np.float32)
+        variance[inside] = model.sigma(self.gauge_ov[inside]) ** 2
+        return variance
 
     def _valid_over(self, lights: tuple[int, ...]) -> np.ndarray:
         """(Hg, Wg, B) gauge bands valid over ``lights``: valid over every light,
