@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from .errors import EncodingWarning, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
 from .noise import NoiseModel, estimate_noise
+
+if TYPE_CHECKING:
+    from .results import ReconstructionStats
 
 __all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "finish_differs",
            "judge_finish", "lambertian_fit", "lights_fit", "noisier_scene", "sphere_fit"]
@@ -315,9 +319,9 @@ def finish_differs(model_scale: float, record: dict) -> bool:
     return bool(model_scale > FINISH_HINT_SCALE and fit is not None and fit < MATTE_FIT)
 
 
-def noisier_scene(scene: np.ndarray, mask: np.ndarray | None, stats, record: dict,
-                  first_file: Path) -> bool:
-    """Whether a run that :func:`finish_differs` flags (its RunStatistics ``stats``)
+def noisier_scene(scene: np.ndarray, mask: np.ndarray | None, stats: ReconstructionStats,
+                  record: dict, first_file: Path) -> bool:
+    """Whether a run that :func:`finish_differs` flags (its ``stats``)
     is only a scene noisier than its gauge (NOISIER_SCENE): the (m, H, W, c)
     ``scene``'s own noise sigma over the run's (the gauge's) at the scene's median
     measurement, added to ``record`` as ``scene_noise_over_gauge``; warns when so."""
@@ -327,8 +331,9 @@ def noisier_scene(scene: np.ndarray, mask: np.ndarray | None, stats, record: dic
         usable &= np.asarray(mask, dtype=bool)
     gauge_noise = NoiseModel(**stats.noise)
     own = estimate_noise(scene, usable, gauge_noise)
-    values = scene[usable]
-    level = float(np.median(values[::max(1, values.size // NOISE_LEVEL_SAMPLE)]))
+    picked = np.flatnonzero(usable)
+    picked = picked[::max(1, picked.size // NOISE_LEVEL_SAMPLE)]
+    level = float(np.median(scene.reshape(-1, scene.shape[3])[picked]))
     ratio = record["scene_noise_over_gauge"] = float(own.sigma(level) / gauge_noise.sigma(level))
     if ratio < NOISIER_SCENE or finish_differs(model_scale, record):
         return False
