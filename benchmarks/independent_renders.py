@@ -1,7 +1,7 @@
 """Captures path-traced by an independent renderer (Mitsuba 3), solved by ``colorps reconstruct``.
 
-Run ``python benchmarks/independent_renders.py [--finish diffuse] [--lights 32]
-[--spp 32] [--keep DIR]`` (``pip install -e ".[bench]"``: Mitsuba 3 and its
+Run ``python benchmarks/independent_renders.py [--finish diffuse plastic/diffuse]
+[--lights 32] [--spp 32] [--keep DIR]`` (``pip install -e ".[bench]"``: Mitsuba 3 and its
 CPU renderer; about two minutes a capture on 2 cores).
 
 Our own renderer (:mod:`colorps.synth`) shares its conventions and its idea of
@@ -14,7 +14,8 @@ noise, its microfacet finishes. Each capture is
   front of it (concave folds, cast shadows, light bounced between them), a
   texture of saturated colour patches, as OBJ meshes written by trimesh;
 * a **gauge**: a sphere of the same finish (uniform albedo 0.8) off the axis,
-  in images of its own;
+  in images of its own (``SCENE/GAUGE``, e.g. ``plastic/diffuse``: a gauge of
+  another finish);
 * seen by DiLiGenT's camera (612 x 512 pixels, focal length 3772 pixels,
   ten object radii away), lit by ``--lights`` directional lights on a dome up
   to 45 degrees from the view, each a little coloured;
@@ -115,16 +116,19 @@ def sensor(mi, spp: int) -> dict:
 
 
 def render_capture(folder: Path, kind: str, lights: int, spp: int) -> None:
-    """Write the capture: scene_NN.exr, gauge_NN.exr, mask.png, lights.json, K.txt, truth.npy."""
+    """Write the capture of ``kind`` (the finish, or SCENE/GAUGE finishes): scene_NN.exr,
+    gauge_NN.exr, mask.png, lights.json, K.txt, truth.npy."""
+    scene_finish, gauge_finish = (kind.split("/") * 2)[:2]
     import mitsuba as mi
 
     mi.set_variant("scalar_rgb")
     pot, handle = pot_meshes(folder)
     albedo = texture()
-    scene = {name: {"type": "obj", "filename": str(path), "bsdf": finish(mi, kind, albedo)}
+    scene = {name: {"type": "obj", "filename": str(path),
+                    "bsdf": finish(mi, scene_finish, albedo)}
              for name, path in (("pot", pot), ("handle", handle))}
     gauge = {"ball": {"type": "sphere", "center": list(GAUGE_CENTRE), "radius": GAUGE_RADIUS,
-                      "bsdf": finish(mi, kind, GAUGE_ALBEDO)}}
+                      "bsdf": finish(mi, gauge_finish, GAUGE_ALBEDO)}}
     truth = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "nn:sh_normal"},
                           "sensor": sensor(mi, 64), **scene})
     mi.render(truth)
@@ -179,7 +183,8 @@ def least_squares(folder: Path) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--finish", choices=FINISHES, nargs="+", default=list(FINISHES))
+    parser.add_argument("--finish", nargs="+", default=list(FINISHES),
+                        help=f"{' or '.join(FINISHES)}, or SCENE/GAUGE finishes")
     parser.add_argument("--lights", type=int, default=32)
     parser.add_argument("--spp", type=int, default=32, help="samples per pixel")
     parser.add_argument("--keep", type=Path, help="render into (or reuse) this folder")
@@ -187,7 +192,9 @@ def main() -> None:
     root = args.keep or Path(tempfile.mkdtemp())
     rows = []
     for kind in args.finish:
-        folder = root / f"{kind}-{args.lights}"
+        if not set(kind.split("/")) <= set(FINISHES):
+            parser.error(f"--finish {kind}: finishes are {', '.join(FINISHES)}")
+        folder = root / f"{kind.replace('/', '-on-')}-{args.lights}"
         folder.mkdir(parents=True, exist_ok=True)
         if not (folder / "K.txt").exists():
             started = time.perf_counter()
