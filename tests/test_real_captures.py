@@ -126,7 +126,11 @@ def test_weighted_matches_are_brute_force_nearest(m, seed, levels, count):
     g = sig_g.signatures.reshape(-1, 3, m).astype(np.float64)
     table = np.flatnonzero((sig_g.valid & gauge.mask).ravel())
     s = sig_s.signatures[ys, xs].reshape(-1, 3, m).astype(np.float64)
-    d2 = (((s[:, None] - g[table][None]) ** 2).sum(-1) * w2).sum(-1)
+    # Every entry's weighted squared distance, |s|^2 + |g|^2 - 2 s.g in float64 (a
+    # matrix product: the brute force without a (queries, entries, bands, m) array).
+    sw = (s * np.sqrt(w2)[:, None]).reshape(len(s), -1)
+    gw = (g[table] * np.sqrt(w2)[:, None]).reshape(len(table), -1)
+    d2 = (sw ** 2).sum(-1)[:, None] + (gw ** 2).sum(-1)[None] - 2.0 * sw @ gw.T
     best = d2.min(axis=1)
     got = (((s - g[result.rows]) ** 2).sum(-1) * w2).sum(-1)
     assert np.all(got <= best * (1 + 1e-4) + 1e-6)
