@@ -28,7 +28,8 @@ default options, gauge mode with ``--camera K.txt``, and virtual mode
 (``--lights``, ``--camera``), against least squares on every light with the
 true lights (Woodham; the bands' mean). It prints a markdown table: mean
 (refused = 90 degrees) / median / solved, the share of errors within the 68 %
-uncertainty, and wall seconds.
+uncertainty, the facets (neighbouring pixels with identical normals) and wall
+seconds.
 """
 
 from __future__ import annotations
@@ -164,7 +165,20 @@ def errors(folder: Path, out: Path) -> str:
     error[solved] = np.degrees(np.arccos(np.clip((normals[solved] * truth[solved]).sum(-1), -1, 1)))
     within = np.mean(error[solved] <= radius[solved])
     return (f"{error[mask].mean():.2f} / {np.median(error[mask]):.2f} / "
-            f"{100 * solved[mask].mean():.2f}% | {100 * within:.0f}%")
+            f"{100 * solved[mask].mean():.2f}% | {100 * within:.0f}% | "
+            f"{100 * facets(normals):.3f}%")
+
+
+def facets(normals: np.ndarray) -> float:
+    """The share of neighbouring solved pixels (across and down) whose normals are
+    identical: flat patches of one gauge normal."""
+    solved = np.isfinite(normals[..., 0])
+    pairs = same = 0
+    for a, b, both in ((normals[:, 1:], normals[:, :-1], solved[:, 1:] & solved[:, :-1]),
+                       (normals[1:], normals[:-1], solved[1:] & solved[:-1])):
+        pairs += int(both.sum())
+        same += int((np.all(a == b, axis=-1) & both).sum())
+    return same / max(pairs, 1)
 
 
 def least_squares(folder: Path) -> str:
@@ -178,7 +192,7 @@ def least_squares(folder: Path) -> str:
     g = np.linalg.lstsq(directions, shading, rcond=None)[0].T
     cosine = (g / np.linalg.norm(g, axis=1, keepdims=True) * truth[mask]).sum(-1)
     error = np.degrees(np.arccos(np.clip(cosine, -1, 1)))
-    return f"{error.mean():.2f} / {np.median(error):.2f} / 100.00% | "
+    return f"{error.mean():.2f} / {np.median(error):.2f} / 100.00% |  | "
 
 
 def main() -> None:
@@ -217,8 +231,8 @@ def main() -> None:
         rows.append(f"| {kind} | least squares, true lights | {least_squares(folder)} |  |")
     print(f"\nMitsuba 3 captures, {args.lights} lights, {args.spp} samples per pixel: mean "
           "(refused = 90 deg) / median (deg) / solved\n")
-    print("| finish | run | errors | within 68 % | seconds |")
-    print("|---|---|---|---|---|")
+    print("| finish | run | errors | within 68 % | facets | seconds |")
+    print("|---|---|---|---|---|---|")
     print("\n".join(rows))
 
 
