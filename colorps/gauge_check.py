@@ -34,7 +34,7 @@ import numpy as np
 from .errors import EncodingWarning, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
-from .noise import NoiseModel, estimate_noise
+from .noise import NoiseModel, estimate_noise, lit_measurements
 
 if TYPE_CHECKING:
     from .results import ReconstructionStats
@@ -326,9 +326,7 @@ def noisier_scene(scene: np.ndarray, mask: np.ndarray | None, stats: Reconstruct
     ``scene``'s own noise sigma over the run's (the gauge's) at the scene's median
     measurement, added to ``record`` as ``scene_noise_over_gauge``; warns when so."""
     model_scale = stats.model_scale
-    usable = np.isfinite(scene).all(axis=3) & (scene > 0).all(axis=3)
-    if mask is not None:
-        usable &= np.asarray(mask, dtype=bool)
+    usable = lit_measurements(scene, mask)
     gauge_noise = NoiseModel(**stats.noise)
     own = estimate_noise(scene, usable, gauge_noise)
     picked = np.flatnonzero(usable)

@@ -32,7 +32,8 @@ import numpy as np
 
 from ._checks import mask_box
 
-__all__ = ["NoiseModel", "estimate_noise", "file_noise", "quantisation_sigma"]
+__all__ = ["NoiseModel", "estimate_noise", "file_noise", "lit_measurements",
+           "quantisation_sigma"]
 
 #: The read-noise floor of floating-point data with no measurable scatter (linear).
 FLOAT_READ_NOISE = 1e-5
@@ -305,3 +306,15 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
     return NoiseModel(read=float(max(np.sqrt(read2), floor)), gain=float(gain),
                       pixel_type=base.pixel_type, top_code=base.top_code,
                       encoding=base.encoding, estimated=True)
+
+
+
+def lit_measurements(scene: np.ndarray, mask=None) -> np.ndarray:
+    """(m, H, W) bool: each image's pixels of the (m, H, W, c) ``scene`` with every
+    band finite and lit, within ``mask`` ((H, W) bool, optional). What
+    :func:`estimate_noise` takes as ``usable`` for a scene's own scatter: under
+    many lights few pixels are lit in all images."""
+    usable = np.isfinite(scene).all(axis=3) & (scene > 0).all(axis=3)
+    if mask is not None:
+        usable &= np.asarray(mask, dtype=bool)
+    return usable

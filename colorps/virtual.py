@@ -33,7 +33,7 @@ from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
 from .lights import Lights
 from .matte_lights import matte_sphere_lights
-from .noise import estimate_noise
+from .noise import estimate_noise, lit_measurements
 from .options import Options
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
@@ -128,11 +128,7 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
         run = resolve(options)
         settings = run.options
         if "auto" in (settings.read_noise, settings.gain):
-            # Each image's lit pixels: under many lights few are lit in all.
-            usable = np.isfinite(scene).all(axis=3) & (scene > 0).all(axis=3)
-            if mask is not None:
-                usable &= np.asarray(mask, dtype=bool)
-            fitted = estimate_noise(scene, usable, run.scene.noise)
+            fitted = estimate_noise(scene, lit_measurements(scene, mask), run.scene.noise)
             run = run.replace(
                 read_noise=fitted.read if settings.read_noise == "auto" else settings.read_noise,
                 gain=fitted.gain if settings.gain == "auto" else settings.gain)
