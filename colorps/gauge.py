@@ -11,6 +11,7 @@ normals only in its outermost pixels.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -182,6 +183,16 @@ class Gauge:
         return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)),
                    rim_margin=float(margin))
 
+
+    def within(self, box: tuple[slice, slice]) -> Gauge:
+        """The gauge in a box (rows, columns) of its images, its sphere's centre
+        counted from the box's corner."""
+        rows, cols = box
+        sphere = None if self.sphere is None else \
+            (self.sphere[0] - cols.start, self.sphere[1] - rows.start, self.sphere[2])
+        stack = None if self.stack is None else self.stack[:, rows, cols]
+        return dataclasses.replace(self, normals=self.normals[rows, cols],
+                                   mask=self.mask[rows, cols], sphere=sphere, stack=stack)
 
     @classmethod
     def virtual(cls, lights, *, radius: float = DEFAULT_VIRTUAL_RADIUS, bands: int | None = None,

@@ -20,9 +20,11 @@ from .tables import TABLE_CACHE_MIB
 __all__ = [
     "AUTO_MEMORY_FRACTION",
     "DEFAULT_TILE_ROWS",
+    "KEPT_GRIDS_SHARE",
     "TilePlan",
     "available_memory_bytes",
     "cgroup_available_bytes",
+    "kept_grids_mib",
     "memory_limit",
     "plan_tiles",
     "release_freed_memory",
@@ -53,6 +55,11 @@ TILE_FIXED_MIB = 300
 WORKING_BYTES = 8.0
 FINISH_BYTES = 110
 MIN_TILE_ROWS = 16
+#: An untiled run that solves its scene again and again (the bounced light's
+#: passes) keeps the grids of its tables for every solve within this share of
+#: what the memory model leaves under the limit (:func:`kept_grids_mib`): 32
+#: RGB images of a 40,000-pixel gauge make grids of 42 MiB, 34 of them.
+KEPT_GRIDS_SHARE = 0.5
 
 
 #: Where Linux mounts the control groups whose memory limits a container or a
@@ -211,6 +218,18 @@ def rows_for_memory(limit_gib: float, shape: tuple[int, int, int, int], *,
                          f"{MIN_TILE_ROWS} rows (its whole-image maps, height "
                          f"integration and outputs take {finish / 2 ** 30:.1f} GiB)")
     return rows
+
+
+def kept_grids_mib(limit_gib: float | str | None, shape: tuple[int, int, int, int]) -> float:
+    """MiB of grids an untiled run of an (m, H, W, c) scene may keep for its
+    solves: TABLE_CACHE_MIB, plus KEPT_GRIDS_SHARE of what the memory model
+    leaves under the limit (:func:`memory_limit` of ``limit_gib``; with none,
+    of the memory "auto" would give)."""
+    limit, _ = memory_limit("auto" if limit_gib is None else limit_gib)
+    m, h, w, c = shape
+    used = (BASE_MIB + TILE_FIXED_MIB + TABLE_CACHE_MIB) * 2 ** 20 + \
+        (MAP_BYTES + WORKING_BYTES * 4 * m * c) * h * w
+    return TABLE_CACHE_MIB + KEPT_GRIDS_SHARE * max(0.0, limit * 2 ** 30 - used) / 2 ** 20
 
 
 @dataclass(frozen=True)

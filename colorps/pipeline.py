@@ -62,7 +62,7 @@ from .io import (
     warn_lossy_stack,
 )
 from .lights import read_lights
-from .memory import TilePlan, plan_tiles, release_freed_memory
+from .memory import TilePlan, kept_grids_mib, plan_tiles, release_freed_memory
 from .options import Options
 from .outputs import (
     TILED_EXR_SIDE,
@@ -76,6 +76,7 @@ from .pairing import check_natural_order, pair_lights, pairing_record
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock, check_solved
+from .tables import GaugeTables
 from .tiles import StackFiles, dask_client, reconstruct_tiled
 from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
 
@@ -455,18 +456,20 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
             "out)" if tiled else ""), None
     corrected, solved_from, record = without_interreflections(
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
-        _solve_with(gauge_stack, gauge, run, mask, progress), gauge, gauge_stack,
+        _solve_with(gauge_stack, gauge, run, mask, progress, stacks.shape), gauge, gauge_stack,
         progress=progress)
     return corrected, solved_from, record, \
         None if solved_from is None else moved_by(corrected, result)
 
 
-def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool):
+def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool, shape):
     """The run's solve against ``gauge`` as :func:`interreflection.without_interreflections`
-    calls it: ``solve(stack, pixels, model_scale)``, ``pixels`` None for ``mask``."""
+    calls it: ``solve(stack, pixels, model_scale)``, ``pixels`` None for ``mask``; the
+    gauge's tables kept for every solve of a scene of ``shape`` (m, H, W, c)."""
+    tables = GaugeTables(kept_grids_mib(run.options.memory_limit_gib, shape))
     return lambda stack, pixels, scale: reconstruct(
         stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
-        mask=mask if pixels is None else pixels)
+        mask=mask if pixels is None else pixels, tables=tables)
 
 
 def _left_in(result, why: str, advice: str) -> dict:
@@ -522,7 +525,8 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
     virtual = Gauge.virtual(lights, radius=inputs.virtual_radius, bands=result.albedo.shape[-1],
                             brdf=finish[0])
     _, corrected, record = without_interreflections(
-        read_scene, result, _solve_with(virtual.stack, virtual, run, mask, progress), virtual,
+        read_scene, result, _solve_with(virtual.stack, virtual, run, mask, progress,
+                                        (virtual.stack.shape[0], *result.albedo.shape)), virtual,
         virtual.stack, passes=PASSES_AGAIN, solved_as_read=False, progress=progress)
     bounced["with_scene_finish"] = record
     if corrected is None:

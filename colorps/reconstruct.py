@@ -38,7 +38,7 @@ from .memory import release_freed_memory
 from .noise import NoiseModel, estimate_noise
 from .options import MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason
-from .refine import Matched, Refinement, misfit_radius, refine_normals
+from .refine import Matched, Refinement, misfit_radius, quadratic_models, refine_normals
 from .resolve import Resolved, resolve
 from .results import Reconstruction, Timings, low_solved_message, run_statistics
 from .shadows import INLIER_Z, fixes_normal
@@ -51,6 +51,10 @@ __all__ = ["first_residuals", "reconstruct"]
 # ---------------------------------------------------------------- tuning
 #: Below this fraction of usable gauge pixels a GaugeWarning is raised.
 GAUGE_USABLE_WARNING = 0.8
+#: The gauge is worked on in its mask's box grown by this many pixels (the 3 x 3
+#: neighbourhoods of the spike test and the noise fit): a gauge photographed in
+#: a whole frame is mostly background.
+GAUGE_BOX_MARGIN = 2
 #: Least squares albedo (some measurements unusable) needs the usable ones to
 #: carry at least this fraction of the gauge OV's energy; else NaN.
 MIN_ALBEDO_ENERGY = 0.01
@@ -133,6 +137,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         whole, box = mask.shape, mask_box(mask)  # only the mask's box is worked on
         origin, mask = (box[0].start, box[1].start), mask[box]
         setup = _setup(scene, box, gauge_stack, gauge, run, tables)
+        gauge = setup.gauge  # within its mask's box, as the matches' rows count
         m, _, _, c = scene.shape
         # In colour mode the OVs hold every measurement: the stack is let go.
         stack_box = None if options.mode == "colour" else scene[:, box[0], box[1]]
@@ -225,9 +230,10 @@ class _Setup:
     """Signatures, noise model and the capture to match (private)."""
 
     capture: Capture
+    gauge: Gauge  # within its mask's box (GAUGE_BOX_MARGIN)
     scene_sig: SignatureSet
     gauge_sig: SignatureSet
-    gauge_stack: np.ndarray  # its spikes replaced (colorps.spikes)
+    gauge_stack: np.ndarray  # the same box, its spikes replaced (colorps.spikes)
     gauge_spikes: int
     usable_gauge: float
     said: list
@@ -236,45 +242,79 @@ class _Setup:
 
 def _setup(scene, box, gauge_stack, gauge: Gauge, run: Resolved, tables=None) -> _Setup:
     """Signatures of both stacks (the scene's of its ``box``, None: all), the
-    noise model, and the capture to match; a photographed gauge's spikes are
-    replaced first."""
+    noise model, and the capture to match; the gauge's side as ``tables``
+    keeps it (:func:`_gauge_side`)."""
     options = run.options
     m = scene.shape[0]
     t0 = time.perf_counter()
+    side = _gauge_side(gauge_stack, gauge, run) if tables is None else \
+        tables.kept(("gauge side", run), (gauge_stack, gauge),
+                    lambda: _gauge_side(gauge_stack, gauge, run))
     said = []
-    spikes = 0
-    if gauge.stack is None:  # photographed (a rendered gauge has no spikes)
-        gauge_stack, spikes = replace_spikes(gauge_stack, gauge.mask)
-    if spikes:
-        said.append(f"{spikes} isolated spikes in the gauge's images (fireflies, hot "
+    if side.spikes:
+        said.append(f"{side.spikes} isolated spikes in the gauge's images (fireflies, hot "
                     "pixels) were replaced by their neighbours' median")
         warnings.warn(said[-1], GaugeWarning, stacklevel=3)
-    min_norm = dark_threshold(options.dark_level, m)
-    signature_options = dict(band=options.band, colourspace=options.colourspace,
-                             min_norm=min_norm, clip_level=options.clip_level)
-    scene_sig = compute_signatures(scene, options.mode, box=box, **signature_options)
-    gauge_clip, gauge_dark = run.gauge_levels
-    signature_options.update(clip_level=gauge_clip, min_norm=dark_threshold(gauge_dark, m))
-    gauge_sig = compute_signatures(gauge_stack, options.mode, **signature_options)
-    usable_gauge = float((gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum())
-    if usable_gauge < GAUGE_USABLE_WARNING:
-        said.append(f"only {usable_gauge:.0%} of the gauge pixels have every band usable "
+    if side.usable < GAUGE_USABLE_WARNING:
+        said.append(f"only {side.usable:.0%} of the gauge pixels have every band usable "
                     "(clipped, too dark or invalid): check the gauge's exposure")
         warnings.warn(said[-1], GaugeWarning, stacklevel=3)
-    gauge_model = _noise_model(gauge_stack, gauge, gauge_sig, options, run.gauge.noise)
+    min_norm = dark_threshold(options.dark_level, m)
+    scene_sig = compute_signatures(scene, options.mode, box=box, band=options.band,
+                                   colourspace=options.colourspace, min_norm=min_norm,
+                                   clip_level=options.clip_level)
+    gauge_sig, gauge_model = side.signatures, side.model
     model = dataclasses.replace(run.scene.noise, read=gauge_model.read,
                                 gain=gauge_model.gain, estimated=gauge_model.estimated)
     capture = Capture(
-        scene_ov=scene_sig.ov, scene_valid=scene_sig.band_valid,
-        gauge_ov=gauge_sig.ov, gauge_valid=gauge_sig.band_valid & gauge.mask[..., None],
-        gauge_normals=gauge.normals.reshape(-1, 3), model=model, min_norm=min_norm,
-        gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
-        scene_invalid=scene_sig.band_invalid_value.any(axis=-1),
-        gauge_clipped=np.where(gauge.mask[..., None], gauge_sig.clipped_lights, np.uint64(0)),
-        gauge_unclipped=~gauge_sig.band_invalid_value & ~gauge_sig.band_dark &
-        gauge.mask[..., None], tables=tables)
-    return _Setup(capture, scene_sig, gauge_sig, gauge_stack, spikes, usable_gauge, said,
-                  time.perf_counter() - t0)
+        scene_ov=scene_sig.ov, scene_valid=scene_sig.band_valid, gauge_ov=gauge_sig.ov,
+        gauge_valid=side.valid, gauge_normals=side.gauge.normals.reshape(-1, 3), model=model,
+        min_norm=min_norm, gauge_model=gauge_model, scene_clipped=scene_sig.clipped_lights,
+        scene_invalid=scene_sig.band_invalid_value.any(axis=-1), gauge_clipped=side.clipped,
+        gauge_unclipped=side.unclipped, tables=tables)
+    return _Setup(capture, side.gauge, scene_sig, gauge_sig, side.stack, side.spikes,
+                  side.usable, said, time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class _GaugeSide:
+    """What a solve makes of the gauge alone (private; kept by GaugeTables)."""
+
+    gauge: Gauge  # within its mask's box (GAUGE_BOX_MARGIN)
+    stack: np.ndarray  # the same box, its spikes replaced (colorps.spikes)
+    spikes: int
+    signatures: SignatureSet
+    usable: float  # share of the gauge's pixels with every band usable
+    model: NoiseModel
+    valid: np.ndarray  # Capture's gauge_valid, gauge_clipped, gauge_unclipped
+    clipped: np.ndarray
+    unclipped: np.ndarray
+
+
+def _gauge_side(gauge_stack, gauge: Gauge, run: Resolved) -> _GaugeSide:
+    """The gauge in its mask's box, its signatures and noise model; a photographed
+    gauge's spikes replaced first."""
+    options = run.options
+    h, w = gauge.mask.shape
+    rows, cols = mask_box(gauge.mask)
+    box = (slice(max(rows.start - GAUGE_BOX_MARGIN, 0), min(rows.stop + GAUGE_BOX_MARGIN, h)),
+           slice(max(cols.start - GAUGE_BOX_MARGIN, 0), min(cols.stop + GAUGE_BOX_MARGIN, w)))
+    gauge, gauge_stack = gauge.within(box), gauge_stack[:, box[0], box[1]]
+    spikes = 0
+    if gauge.stack is None:  # photographed (a rendered gauge has no spikes)
+        gauge_stack, spikes = replace_spikes(gauge_stack, gauge.mask)
+    gauge_clip, gauge_dark = run.gauge_levels
+    gauge_sig = compute_signatures(gauge_stack, options.mode, band=options.band,
+                                   colourspace=options.colourspace,
+                                   min_norm=dark_threshold(gauge_dark, gauge_stack.shape[0]),
+                                   clip_level=gauge_clip)
+    usable = float((gauge.mask & gauge_sig.valid).sum() / gauge.mask.sum())
+    model = _noise_model(gauge_stack, gauge, gauge_sig, options, run.gauge.noise)
+    inside = gauge.mask[..., None]
+    return _GaugeSide(gauge, gauge_stack, spikes, gauge_sig, usable, model,
+                      valid=gauge_sig.band_valid & inside,
+                      clipped=np.where(inside, gauge_sig.clipped_lights, np.uint64(0)),
+                      unclipped=~gauge_sig.band_invalid_value & ~gauge_sig.band_dark & inside)
 
 
 def _embed(result: Reconstruction, box: tuple[slice, slice], shape: tuple[int, int]
@@ -357,9 +397,13 @@ def _refine(capture: Capture, gauge: Gauge, matches: Matches,
     # The gauge's models are fitted where its bands are usable but for clipped
     # measurements: a pixel near a clipped patch leaves those lights out (or its
     # robust fit down-weights them); without them it kept the table's normal.
-    refined = refine_normals(capture.scene_ov, capture.gauge_ov, gauge.normals,
-                             capture.gauge_unclipped.all(axis=-1), matched, capture.model,
-                             capture.gauge_model or capture.model,
+    usable = capture.gauge_unclipped.all(axis=-1)
+    if capture.tables is not None:  # every usable pixel's model, kept for the next solve
+        usable = capture.tables.kept("refinement models", (capture.gauge_ov, gauge),
+                                     lambda: quadratic_models(capture.gauge_ov.reshape(
+                                         *usable.shape, -1), gauge.normals, usable))
+    refined = refine_normals(capture.scene_ov, capture.gauge_ov, gauge.normals, usable,
+                             matched, capture.model, capture.gauge_model or capture.model,
                              model_scale=matches.model_scale, outlier_z=INLIER_Z,
                              threads=options.threads)
     if not poor.any():

@@ -38,6 +38,7 @@ __all__ = [
     "RADIUS_68",
     "REFINE_METHODS",
     "Matched",
+    "QuadraticModels",
     "Refinement",
     "misfit_radius",
     "noise_tables",
@@ -109,9 +110,16 @@ class Refinement:
     outliers: np.ndarray
 
 
+class QuadraticModels(NamedTuple):
+    """The gauge's local quadratic models (:func:`quadratic_models`)."""
+
+    coef: np.ndarray
+    ncoef: np.ndarray
+    window: np.ndarray
+
+
 def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray,
-                     needed: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     needed: np.ndarray | None = None) -> QuadraticModels:
     """The local quadratic model of every gauge series around gauge pixels.
 
     Parameters
@@ -125,6 +133,7 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
 
     Returns
     -------
+    QuadraticModels
     coef : (Hg, Wg, S, 6) float32, ncoef : (Hg, Wg, 3, 6) float32
         Coefficients of (1, u, v, u^2, uv, v^2), fitted by least squares over
         the largest window of ``_refine_kernels.HALVES`` whose pixels are all
@@ -150,7 +159,7 @@ def quadratic_models(values: np.ndarray, normals: np.ndarray, usable: np.ndarray
             _refine_kernels.fit_quadratics(series, ys, xs, half,
                                            _refine_kernels.quadratic_fit_matrix(half), coef)
         models.append(coef)
-    return models[0], models[1], window
+    return QuadraticModels(models[0], models[1], window)
 
 
 def noise_tables(scene: NoiseModel, gauge: NoiseModel) -> _refine_kernels.NoiseTables:
@@ -206,8 +215,10 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     gauge_ov : (Hg, Wg, B, M) ndarray
         Gauge observation vectors per band.
     gauge_normals : (Hg, Wg, 3) ndarray
-    usable : (Hg, Wg) ndarray of bool
-        Gauge pixels whose measurements and normal may be used.
+    usable : (Hg, Wg) ndarray of bool, or QuadraticModels
+        Gauge pixels whose measurements and normal may be used; or the
+        :func:`quadratic_models` of every such pixel, fitted before (else they
+        are fitted here, around the matched pixels only).
     matched : Matched
         The pixels to refine and their matches.
     scene_noise, gauge_noise : NoiseModel
@@ -232,15 +243,18 @@ def refine_normals(scene_ov: np.ndarray, gauge_ov: np.ndarray, gauge_normals: np
     hg, wg, b, m = gauge_ov.shape
     n = len(matched.rows)
     rows = np.asarray(matched.rows, dtype=np.int64)
-    near = np.zeros(hg * wg, dtype=bool)
-    near[rows] = True
-    # The fit may move MAX_MOVES pixels, from the matched pixel or, at the rim,
-    # from its modelled neighbour: every model it may look at is fitted, so a
-    # pixel's normal does not depend on what the others matched (tiles).
-    reach = 2 * (_refine_kernels.MAX_MOVES + 1) + 1
-    needed = binary_dilation(near.reshape(hg, wg), np.ones((reach, reach), bool))
-    coef, ncoef, window = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals,
-                                           usable, needed)
+    models = usable
+    if not isinstance(models, QuadraticModels):
+        # The fit may move MAX_MOVES pixels, from the matched pixel or, at the rim,
+        # from its modelled neighbour: every model it may look at is fitted, so a
+        # pixel's normal does not depend on what the others matched (tiles).
+        near = np.zeros(hg * wg, dtype=bool)
+        near[rows] = True
+        reach = 2 * (_refine_kernels.MAX_MOVES + 1) + 1
+        needed = binary_dilation(near.reshape(hg, wg), np.ones((reach, reach), bool))
+        models = quadratic_models(gauge_ov.reshape(hg, wg, b * m), gauge_normals, usable,
+                                  needed)
+    coef, ncoef, window = models
     gauge = _refine_kernels.GaugeModel(coef, ncoef, window,
                                        np.ascontiguousarray(gauge_ov, dtype=np.float32))
     scene_ov = np.ascontiguousarray(scene_ov, dtype=np.float32)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,16 +43,20 @@ LIGHT_SET_CACHE_MIB = 256
 
 
 class GaugeTables:
-    """Bucket grids of one gauge's tables, kept to be used again.
+    """Bucket grids of one gauge's tables, and what else is made of the gauge
+    alone, kept to be used again.
 
-    The tiles of a capture match against the same tables (same gauge, options
-    and model): with one GaugeTables passed to each tile's
+    The tiles of a capture, and the solves of one run (the bounced light's
+    passes, :mod:`colorps.interreflection`), match against the same tables
+    (same gauge, options and model): with one GaugeTables passed to each
     :func:`colorps.reconstruct`, every table's grid is built once instead of
-    once per tile (in each Dask worker: a scattered copy fills on its own).
+    once per solve (in each Dask worker: a scattered copy fills on its own).
     Grids are kept while they fit in ``max_mib``; the first built stay (a
     tile matches its largest groups first, so those are the ones kept).
     The gauge they were built for is checked by a fingerprint of its
     observation vectors and settings: another gauge raises an InputError.
+    The gauge's prepared stack, signatures, noise model and refinement models
+    are kept too (:meth:`kept`; one gauge's worth, not counted in ``max_mib``).
     """
 
     def __init__(self, max_mib: float = TABLE_CACHE_MIB) -> None:
@@ -61,8 +66,9 @@ class GaugeTables:
         self.bytes = 0
         self.reused = 0
         self._grids: dict = {}
+        self._kept: dict = {}
         self._fingerprint = None
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
 
     def attach(self, fingerprint: bytes) -> None:
         """Check (or, the first time, record) the gauge's fingerprint."""
@@ -78,6 +84,17 @@ class GaugeTables:
         if grid is not None:
             self.reused += 1
         return grid
+
+    def kept(self, name: str, sources: tuple, make: Callable[[], object]):
+        """What ``make()`` returns for ``sources``: made on the first call, and
+        again only when called with other sources (compared by identity, each
+        held until then) under the same ``name``."""
+        with self._lock:
+            held = self._kept.get(name)
+            if held is None or len(held[0]) != len(sources) or \
+                    any(a is not b for a, b in zip(held[0], sources)):
+                held = self._kept[name] = (sources, make())
+            return held[1]
 
     def keep(self, key, grid: BucketGrid) -> None:
         size = grid.nbytes
@@ -254,7 +271,8 @@ class Capture:
     def __post_init__(self) -> None:
         self.gauge_ov = np.ascontiguousarray(self.gauge_ov)  # the kernels read it often
         if self.tables is not None:
-            self.tables.attach(self.gauge_fingerprint())
+            gauge = (self.gauge_ov, self.gauge_valid, self.gauge_clipped)
+            self.tables.attach(self.tables.kept("fingerprint", gauge, self.gauge_fingerprint))
 
     def gauge_fingerprint(self) -> bytes:
         """A digest of everything the tables are made of: the gauge's OVs, its
@@ -275,7 +293,10 @@ class Capture:
             self._light_sets.move_to_end(lights)
         else:
             if self._gauge_variance is None:  # per measurement, computed once
-                self._gauge_variance = self._variance()
+                self._gauge_variance = self._variance() if self.tables is None else \
+                    self.tables.kept("variance", (self.gauge_ov, self.gauge_valid,
+                                                  self.gauge_unclipped, self.gauge_model),
+                                     self._variance)
             hg, wg, n_bands, _ = self.gauge_ov.shape
             norm2 = np.empty((hg, wg, n_bands))
             variance = np.empty((hg, wg, n_bands), dtype=np.float32)

@@ -146,3 +146,25 @@ def test_a_small_gauge_keeps_its_steep_normals():
     before, after = errors(None), errors(measured)  # None: 2 px
     assert after[steep].mean() < 0.5 * before[steep].mean()
     assert after[scene.mask].mean() < 0.75 * before[scene.mask].mean()
+
+
+def test_a_gauge_in_a_whole_frame_is_solved_in_its_box():
+    """A solve works on the gauge's mask's box (a photographed gauge fills little
+    of its frame): the same sphere in a frame 3 x 4 times as large gives the same
+    maps as in a tight one, and Gauge.within moves the sphere with the box."""
+    from colorps import reconstruct
+
+    lights = synth.ring_lights(8, 45)
+    scene = synth.smiley_surface(48)
+    stack = synth.render(scene, lights, noise=0.002, seed=1)
+    tight = synth.render(synth.sphere_surface(61, 28), lights, noise=0.002, seed=2)
+    frame = np.zeros((8, 180, 240, 3), dtype=np.float32)
+    frame[:, 40:101, 150:211] = tight
+    alone = reconstruct(stack, tight, Gauge.from_sphere((61, 61), 30, 30, 28), mask=scene.mask)
+    whole = Gauge.from_sphere((180, 240), 180, 70, 28)
+    framed = reconstruct(stack, frame, whole, mask=scene.mask)
+    for name in ("normals", "albedo", "quality", "uncertainty"):
+        assert np.array_equal(getattr(alone, name), getattr(framed, name), equal_nan=True), name
+    boxed = whole.within((slice(40, 101), slice(150, 211)))
+    assert boxed.sphere == (30.0, 30.0, 28.0)
+    assert np.array_equal(boxed.mask, whole.mask[40:101, 150:211])

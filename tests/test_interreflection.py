@@ -242,6 +242,7 @@ def test_a_finish_that_cannot_be_fitted_again_keeps_the_result(monkeypatch):
     from colorps.brdf import BRDF
     from colorps.errors import InputError
     from colorps.lights import Lights
+    from colorps.resolve import resolve
 
     def no_fit(*args, **kwargs):
         raise InputError("brdf fit: only 12 usable lit measurements")
@@ -253,9 +254,10 @@ def test_a_finish_that_cannot_be_fitted_again_keeps_the_result(monkeypatch):
     lights = Lights(dome_lights(6).directions[:, 0, :])
     inputs = SimpleNamespace(camera=None, virtual_radius=20.0)
     bounced = {}
-    out = pipeline._bounced_again(result, "run", (BRDF.lambert(), None), lights, None, None,
+    run = resolve(None)
+    out = pipeline._bounced_again(result, run, (BRDF.lambert(), None), lights, None, None,
                                   inputs, False, bounced)
-    assert out[0] is result and out[1] == "run"
+    assert out[0] is result and out[1] is run
     assert bounced["with_scene_finish"]["kept"] is False
     assert "12 usable" in bounced["with_scene_finish"]["failed"]
 

@@ -99,6 +99,47 @@ def test_gauge_tables_build_each_grid_once_for_all_tiles(messy):
         reconstruct(scene, gauge_stack[::-1], gauge, mask=mask, tables=copy)
 
 
+def test_gauge_tables_prepare_the_gauge_once_for_every_solve(messy, monkeypatch):
+    """Solves sharing one GaugeTables (the bounced light's passes) fit the gauge's
+    noise and refinement models once, and give the maps each solve gives alone."""
+    import sys
+
+    from colorps.tables import GaugeTables
+
+    module = sys.modules["colorps.reconstruct"]
+    calls = []
+    for name in ("estimate_noise", "quadratic_models"):
+        def counted(*args, _original=getattr(module, name), _name=name, **kwargs):
+            calls.append(_name)
+            return _original(*args, **kwargs)
+        monkeypatch.setattr(module, name, counted)
+    scene, gauge_stack, gauge, mask = messy
+    tables = GaugeTables()
+    solves = [reconstruct(stack, gauge_stack, gauge, mask=mask, tables=tables)
+              for stack in (scene, scene * np.float32(0.9))]
+    assert sorted(calls) == ["estimate_noise", "quadratic_models"]
+    for stack, kept in zip((scene, scene * np.float32(0.9)), solves):
+        alone = reconstruct(stack, gauge_stack, gauge, mask=mask)
+        for field in ("normals", "albedo", "quality", "uncertainty"):
+            assert np.array_equal(getattr(kept, field), getattr(alone, field), equal_nan=True)
+    # Another gauge stack is prepared again (and here refused: other lights).
+    calls.clear()
+    with pytest.raises(InputError, match="another gauge"):
+        reconstruct(scene, np.ascontiguousarray(gauge_stack[::-1]), gauge, mask=mask,
+                    tables=tables)
+    assert calls == ["estimate_noise"]
+
+
+def test_kept_grids_grow_with_the_memory_left():
+    from colorps.memory import KEPT_GRIDS_SHARE, TABLE_CACHE_MIB, kept_grids_mib
+
+    shape = (32, 512, 612, 3)
+    assert kept_grids_mib(0.5, shape) == TABLE_CACHE_MIB  # nothing left: the tiles' cache
+    more = kept_grids_mib(16.0, shape) - kept_grids_mib(8.0, shape)
+    assert more == pytest.approx(KEPT_GRIDS_SHARE * 8 * 1024)
+    assert kept_grids_mib(16.0, shape) > kept_grids_mib(16.0, (96, 512, 612, 3))
+
+
 def test_each_tile_alone_would_scale_differently(messy):
     """Without the shared model scale, tiles would not reproduce the whole run."""
     scene, gauge_stack, gauge, mask = messy
