@@ -160,6 +160,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                                                                        mask, progress)
         clock.start("reconstruct")
         along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
+        tables = GaugeTables(0)  # the gauge's side for every untiled solve (its grids: below)
         if plan.rows is not None:
             with dask_client(scheduler) as client:
                 result, preview = reconstruct_tiled(
@@ -171,10 +172,11 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
             del scene  # held by ``handed`` alone, so that the reconstruction can free it
             result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
                                                  (stacks.light_set, virtual, inputs.camera),
-                                                 progress)
+                                                 progress, tables)
         check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
         result, solved_from, bounced, moved = _without_interreflections(
-            result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress)
+            result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress, tables)
+        del tables  # (its grids)
         corrected = result
         if virtual is not None and solved_from is not None:  # its finish fitted again
             result, run, virtual = with_own_finish(
@@ -298,8 +300,8 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
 
 
 def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, mask,
-                       along_rays: bool, view, progress: bool) -> tuple[Reconstruction,
-                                                                       np.ndarray]:
+                       along_rays: bool, view, progress: bool,
+                       tables: GaugeTables) -> tuple[Reconstruction, np.ndarray]:
     """Reconstruct the scene stack ``handed`` holds (its only reference) untiled;
     the result and the overview's preview of the scene.
 
@@ -312,7 +314,7 @@ def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, m
     if not along_rays:
         preview = handed[0][:, ::step, ::step].mean(axis=0)  # what the overview draws
         return reconstruct(handed.pop(), gauge_stack, gauge, run, mask=mask,
-                           progress=progress), preview
+                           progress=progress, tables=tables), preview
     light_set, virtual, camera = view
     result, scene = match_along_rays(handed.pop(), gauge, run, light_set, virtual[0], camera,
                                      mask=mask, progress=progress)
@@ -440,7 +442,7 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
 
 def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge,
                               run: Resolved, mask, plan: TilePlan, along_rays: bool,
-                              progress: bool):
+                              progress: bool, tables: GaugeTables):
     """The result solved again without the light a concave object bounces onto itself
     (:func:`interreflection.without_interreflections`, the scene read again only
     then), the measurements it was solved from (None: as read), report.json's record,
@@ -454,19 +456,20 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
             result, "a tiled run" if tiled else "a run matched along the camera's rays",
             " (untiled, without --tile and with enough --memory-limit, that light is taken "
             "out)" if tiled else ""), None
+    tables.resize(kept_grids_mib(run.options.memory_limit_gib, stacks.shape))  # many solves
     corrected, solved_from, record = without_interreflections(
         lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
-        _solve_with(gauge_stack, gauge, run, mask, progress, stacks.shape), gauge, gauge_stack,
+        _solve_with(gauge_stack, gauge, run, mask, progress, tables), gauge, gauge_stack,
         progress=progress)
     return corrected, solved_from, record, \
         None if solved_from is None else moved_by(corrected, result)
 
 
-def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool, shape):
+def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool,
+                tables: GaugeTables):
     """The run's solve against ``gauge`` as :func:`interreflection.without_interreflections`
     calls it: ``solve(stack, pixels, model_scale)``, ``pixels`` None for ``mask``; the
-    gauge's tables kept for every solve of a scene of ``shape`` (m, H, W, c)."""
-    tables = GaugeTables(kept_grids_mib(run.options.memory_limit_gib, shape))
+    gauge's side and grids kept in ``tables`` for every solve."""
     return lambda stack, pixels, scale: reconstruct(
         stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
         mask=mask if pixels is None else pixels, tables=tables)
@@ -524,10 +527,11 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
         return result, run, finish
     virtual = Gauge.virtual(lights, radius=inputs.virtual_radius, bands=result.albedo.shape[-1],
                             brdf=finish[0])
+    tables = GaugeTables(kept_grids_mib(run.options.memory_limit_gib,
+                                        (len(virtual.stack), *result.albedo.shape)))
     _, corrected, record = without_interreflections(
-        read_scene, result, _solve_with(virtual.stack, virtual, run, mask, progress,
-                                        (virtual.stack.shape[0], *result.albedo.shape)), virtual,
-        virtual.stack, passes=PASSES_AGAIN, solved_as_read=False, progress=progress)
+        read_scene, result, _solve_with(virtual.stack, virtual, run, mask, progress, tables),
+        virtual, virtual.stack, passes=PASSES_AGAIN, solved_as_read=False, progress=progress)
     bounced["with_scene_finish"] = record
     if corrected is None:
         return result, run, finish
