@@ -14,19 +14,32 @@ takes a camera and intersects each pixel's ray with the sphere.
 centre), a DiLiGenT-style ``K.txt`` (the 3 x 3 intrinsic matrix, one row per
 line: ``fx 0 px`` / ``0 fy py`` / ``0 0 1``), or a JSON file
 (``{"fx": .., "fy": .., "px": .., "py": ..}``, or ``{"K": [[...], [...], [...]]}``).
+Without it (``--camera auto``) the camera is the one the photographs' EXIF
+records (:func:`exif_camera`), else orthographic.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Camera", "read_camera"]
+__all__ = ["FOCAL_PLANE_UNIT_MM", "FRAME_35MM_DIAGONAL_MM", "Camera", "exif_camera",
+           "read_camera"]
+
+#: Millimetres per unit of EXIF's FocalPlaneResolutionUnit (2: inch, 3: cm,
+#: 4: mm, 5: micrometre).
+FOCAL_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}
+#: The diagonal (mm) of the 36 x 24 mm frame of EXIF's FocalLengthIn35mmFilm.
+FRAME_35MM_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
+#: A focal length from EXIF is taken between these multiples of the image's
+#: diagonal (a 10 mm fisheye to a 2000 mm lens on a full frame); else it is not
+#: a camera's.
+EXIF_FOCAL_RANGE = (0.2, 50.0)
 
 
 @dataclass(frozen=True)
@@ -40,12 +53,15 @@ class Camera:
     px, py : float or None
         Principal point (pixel coordinates); None: the centre of the image it
         is used with.
+    source : str or None
+        Where it came from, when not given (:func:`exif_camera`).
     """
 
     fx: float
     fy: float
     px: float | None = None
     py: float | None = None
+    source: str | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy"):
@@ -74,16 +90,70 @@ class Camera:
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def as_dict(self) -> dict:
-        return dict(model="pinhole", fx=self.fx, fy=self.fy, px=self.px, py=self.py)
+        record = dict(model="pinhole", fx=self.fx, fy=self.fy, px=self.px, py=self.py)
+        return record if self.source is None else dict(record, source=self.source)
 
 
-def read_camera(spec) -> Camera | None:
+def exif_camera(path) -> Camera | None:
+    """The pinhole camera an image file's EXIF records, or None when it records none.
+
+    The focal length in pixels is EXIF's FocalLength (mm) times its
+    FocalPlaneXResolution (pixels per FocalPlaneResolutionUnit), scaled by the
+    image's width over the width EXIF's PixelXDimension records (a converter's
+    resize); else its FocalLengthIn35mmFilm times the image's diagonal over the
+    35 mm frame's. The principal point is the image's centre. A crop of the
+    photographs changes neither: give ``--camera`` then.
+
+    Parameters
+    ----------
+    path : str or Path
+        An image file (its header is read).
+
+    Returns
+    -------
+    Camera or None
+        With ``source`` saying which tags gave it.
+    """
+    import OpenImageIO as oiio
+
+    image = oiio.ImageInput.open(str(path))
+    if image is None:
+        return None
+    try:
+        spec = image.spec()
+        tags = {name: spec.getattribute(f"Exif:{name}") for name in (
+            "FocalLength", "FocalPlaneXResolution", "FocalPlaneResolutionUnit",
+            "PixelXDimension", "FocalLengthIn35mmFilm")}
+        width, height = int(spec.width), int(spec.height)
+    finally:
+        image.close()
+    tags = {k: float(v) for k, v in tags.items() if isinstance(v, (int, float)) and v > 0}
+    unit = FOCAL_PLANE_UNIT_MM.get(int(tags.get("FocalPlaneResolutionUnit", 0)))
+    if {"FocalLength", "FocalPlaneXResolution"} <= set(tags) and unit:
+        resized = width / tags.get("PixelXDimension", width)
+        focal = tags["FocalLength"] * tags["FocalPlaneXResolution"] / unit * resized
+        how = (f"FocalLength {tags['FocalLength']:g} mm x FocalPlaneXResolution "
+               f"{tags['FocalPlaneXResolution'] / unit:g} px/mm" +
+               (f" x {resized:.4g} (resized)" if resized != 1 else ""))
+    elif "FocalLengthIn35mmFilm" in tags:
+        focal = tags["FocalLengthIn35mmFilm"] * np.hypot(width, height) / FRAME_35MM_DIAGONAL_MM
+        how = f"FocalLengthIn35mmFilm {tags['FocalLengthIn35mmFilm']:g} mm"
+    else:
+        return None
+    low, high = EXIF_FOCAL_RANGE
+    if not low <= focal / np.hypot(width, height) <= high:
+        return None
+    return Camera(float(focal), float(focal), source=f"EXIF of {Path(path).name}: {how}")
+
+
+def read_camera(spec) -> Camera | str | None:
     """A Camera from ``--camera``'s text: a focal length in pixels, or a file.
 
     Parameters
     ----------
     spec : str, Path, float or None
-        None or "orthographic": no camera (orthographic view). A number: the
+        None or "orthographic": no camera (orthographic view); "auto" is
+        returned as it is (:func:`exif_camera`'s, once the files are known). A number: the
         focal length in pixels (principal point at the image centre). A path:
         a ``K.txt`` (3 x 3 matrix) or a ``.json`` file (see the module docstring).
 
@@ -95,6 +165,8 @@ def read_camera(spec) -> Camera | None:
     """
     if spec is None or spec == "orthographic":
         return None
+    if spec == "auto":
+        return "auto"
     if isinstance(spec, (int, float)) or _is_number(spec):
         f = float(spec)
         return Camera(f, f)

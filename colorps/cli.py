@@ -233,11 +233,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="gauge images under the same lights, same order")
     rec.add_argument("--sphere", type=_sphere, metavar="auto|CX,CY,R",
                      help="gauge sphere in gauge-image pixels, or 'auto' to find it")
-    rec.add_argument("--camera", type=_camera, metavar="F|K.txt|FILE.json",
-                     help="a pinhole camera for the gauge sphere's normals: focal length "
-                          "in pixels (principal point at the image centre), a 3 x 3 "
-                          "intrinsic matrix K.txt, or a JSON (fx, fy, px, py); default "
-                          "orthographic")
+    rec.add_argument("--camera", type=_camera, default="auto", metavar="F|K.txt|FILE.json",
+                     help="a pinhole camera: focal length in pixels (principal point at the "
+                          "image centre), a 3 x 3 intrinsic matrix K.txt, a JSON (fx, fy, px, "
+                          "py), 'orthographic', or 'auto' (default): the focal length the "
+                          "images' EXIF records, else orthographic")
     rec.add_argument("--lights", metavar="FILE",
                      help="instead of --gauge/--sphere: calibrated light directions "
                           "(.txt 'x y z' per image, .lp or .json); the gauge is rendered")

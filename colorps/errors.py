@@ -6,6 +6,7 @@ a non-zero exit code instead of a traceback.
 """
 
 __all__ = [
+    "CameraWarning",
     "ColorPSError",
     "ColorPSWarning",
     "EncodingWarning",
@@ -73,3 +74,7 @@ class ExposureWarning(ColorPSWarning):
 
 class InterreflectionWarning(ColorPSWarning):
     """An object that lights itself was solved with its bounced light left in."""
+
+
+class CameraWarning(ColorPSWarning):
+    """The camera was taken from the images' EXIF (no ``--camera`` given)."""

@@ -8,11 +8,13 @@ reads them.
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from .camera import Camera
-from .errors import InputError
+from .camera import Camera, exif_camera
+from .errors import CameraWarning, InputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
 
 __all__ = ["CaptureFiles"]
@@ -32,10 +34,10 @@ class CaptureFiles:
     sphere : "auto" or (cx, cy, r), optional
         The gauge sphere in gauge-image pixels, or found with
         :func:`colorps.find_sphere` ("auto", the default with gauge images).
-    camera : Camera, optional
-        The pinhole camera of the gauge images (:mod:`colorps.camera`); default
-        orthographic. With a light file it is recorded but not yet used (the
-        rendered gauge is seen orthographically).
+    camera : Camera, "auto" or None, optional
+        The pinhole camera of the images (:mod:`colorps.camera`); None or
+        "orthographic": orthographic; "auto" (the default): the camera the
+        images' EXIF records (:meth:`with_exif_camera`), else orthographic.
     mask : str or Path, optional
         Scene mask image (non-zero = solve).
     lights, light_intensities : str or Path, optional
@@ -56,7 +58,7 @@ class CaptureFiles:
     scene: str | Sequence[str]
     gauge: str | Sequence[str] | None = None
     sphere: object = None
-    camera: Camera | None = None
+    camera: Camera | str | None = "auto"
     mask: object = None
     lights: object = None
     light_intensities: object = None
@@ -64,9 +66,26 @@ class CaptureFiles:
     virtual_radius: float = DEFAULT_VIRTUAL_RADIUS
 
     def __post_init__(self) -> None:
+        if self.camera == "orthographic":
+            object.__setattr__(self, "camera", None)
+        if isinstance(self.camera, str) and self.camera != "auto":
+            raise InputError(f"camera: a Camera, 'auto' or 'orthographic', got {self.camera!r}")
         if (self.gauge is None) == (self.lights is None):
             raise InputError("give either gauge images (and their sphere) or a light file")
         if self.gauge is not None and self.sphere is None:
             object.__setattr__(self, "sphere", "auto")
         if self.lights is None and self.light_intensities is not None:
             raise InputError("light intensities go with a light file (--lights)")
+
+    def with_exif_camera(self, paths) -> CaptureFiles:
+        """These inputs with "auto" replaced by the camera the first of ``paths``
+        (image files) whose EXIF records one records (:func:`colorps.camera.exif_camera`;
+        said by a CameraWarning), else by None (orthographic)."""
+        if self.camera != "auto":
+            return self
+        camera = next(filter(None, map(exif_camera, paths)), None)
+        if camera is not None:
+            warnings.warn(f"no --camera: the camera of the images' EXIF, a focal length of "
+                          f"{camera.focal:.0f} px ({camera.source}); give --camera when they "
+                          "were cropped, or 'orthographic'", CameraWarning, stacklevel=2)
+        return dataclasses.replace(self, camera=camera)

@@ -277,3 +277,77 @@ def test_sphere_auto_through_a_lens_fits_the_cone_of_rays():
     assert np.abs(found - (centre, centre, radius)).max() < 0.15
     plain = np.array(find_sphere(stack))
     assert np.abs(plain - (centre, centre, radius)).max() > 1.0
+
+
+def write_tiff_with_exif(path, image, **tags):
+    """A float32 TIFF (linear) whose header carries EXIF ``tags``."""
+    import OpenImageIO as oiio
+
+    image = np.ascontiguousarray(np.atleast_3d(image), dtype=np.float32)
+    spec = oiio.ImageSpec(image.shape[1], image.shape[0], image.shape[2], oiio.FLOAT)
+    for name, value in tags.items():
+        spec.attribute(f"Exif:{name}", value)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(image)
+    out.close()
+    return path
+
+
+@pytest.mark.parametrize("tags, focal", [
+    (dict(FocalLength=20.0, FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3), 400.0),
+    (dict(FocalLength=20.0, FocalPlaneXResolution=508.0, FocalPlaneResolutionUnit=2,
+          PixelXDimension=520), 200.0),  # resized to half after the shot
+    (dict(FocalLengthIn35mmFilm=50), 50 * np.hypot(260, 200) / np.hypot(36, 24)),
+    (dict(FocalLength=20.0), None),  # no sensor size: no camera
+    (dict(FocalLengthIn35mmFilm=1), None),  # 0.4 % of the diagonal: not a lens
+    ({}, None),
+])
+def test_exif_camera(tmp_path, tags, focal):
+    from colorps.camera import exif_camera
+
+    camera = exif_camera(write_tiff_with_exif(tmp_path / "a.tif", np.zeros((200, 260)),
+                                              **tags))
+    if focal is None:
+        assert camera is None
+    else:
+        assert camera.fx == camera.fy == pytest.approx(focal, rel=1e-6)
+        assert camera.px is None and "EXIF of a.tif" in camera.source
+
+
+def test_cli_camera_from_the_images_exif(tmp_path, capsys):
+    """Without --camera, photographs whose EXIF records the lens and sensor are
+    read through that camera (a CameraWarning and report.json say so); with
+    --camera orthographic they are not."""
+    from colorps.cli import main
+    from colorps.io import read_image, write_image
+
+    camera = Camera(400.0, 400.0)
+    shape = (200, 260)
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    lights = np.column_stack([0.57 * np.cos(phi), 0.57 * np.sin(phi), np.full(8, 0.82)])
+    gauge_stack, _, _ = render_sphere(camera, shape, (-1.3, 0.5, -9.0), lights)
+    scene_stack, truth, hit = render_sphere(camera, shape, (1.5, -0.4, -9.5), lights)
+    lens = dict(FocalLength=20.0, FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3)
+    for k in range(8):
+        write_tiff_with_exif(tmp_path / f"scene_{k}.tif", scene_stack[k], **lens)
+        write_tiff_with_exif(tmp_path / f"gauge_{k}.tif", gauge_stack[k], **lens)
+    mask = hit & (truth[..., 2] > 0.3)
+    write_image(tmp_path / "mask.png", mask.astype(np.float32), dtype="uint8")
+    cx, cy, r = sphere_in_view(camera, shape, (-1.3, 0.5, -9.0), 1.0)
+    args = ["reconstruct", "--scene", str(tmp_path / "scene_*.tif"), "--gauge",
+            str(tmp_path / "gauge_*.tif"), "--sphere", f"{cx},{cy},{r}", "--mask",
+            str(tmp_path / "mask.png"), "--quiet", "--no-height", "--max-residual", "none"]
+    errors = {}
+    for name, extra in (("exif", []), ("orthographic", ["--camera", "orthographic"])):
+        assert main(args + ["--out", str(tmp_path / name)] + extra) == 0
+        said = capsys.readouterr().err
+        assert ("a focal length of 400 px (EXIF of gauge_0.tif" in said) == (name == "exif")
+        normals = read_image(tmp_path / name / "normal.exr")[0]
+        errors[name] = np.median(angular_error(normals[mask], truth[mask]))
+        report = json.loads((tmp_path / name / "report.json").read_text())
+        if name == "exif":
+            assert report["camera"]["fx"] == pytest.approx(400.0)
+            assert "FocalLength 20 mm" in report["camera"]["source"]
+        else:
+            assert report["camera"] is None
+    assert errors["exif"] < 0.1 and errors["orthographic"] > 1.0
