@@ -28,14 +28,17 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["FOCAL_PLANE_UNIT_MM", "FRAME_35MM_DIAGONAL_MM", "Camera", "exif_camera",
-           "read_camera"]
+__all__ = ["CROP_ASPECT", "EXIF_FOCAL_RANGE", "FOCAL_PLANE_UNIT_MM", "FRAME_35MM_DIAGONAL_MM",
+           "Camera", "exif_camera", "read_camera"]
 
 #: Millimetres per unit of EXIF's FocalPlaneResolutionUnit (2: inch, 3: cm,
 #: 4: mm, 5: micrometre).
 FOCAL_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}
 #: The diagonal (mm) of the 36 x 24 mm frame of EXIF's FocalLengthIn35mmFilm.
 FRAME_35MM_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
+#: An image whose width over height differs by more than this share from the
+#: one its EXIF records (PixelXDimension, PixelYDimension) was cropped.
+CROP_ASPECT = 0.01
 #: A focal length from EXIF is taken between these multiples of the image's
 #: diagonal (a 10 mm fisheye to a 2000 mm lens on a full frame); else it is not
 #: a camera's.
@@ -101,8 +104,10 @@ def exif_camera(path) -> Camera | None:
     FocalPlaneXResolution (pixels per FocalPlaneResolutionUnit), scaled by the
     image's width over the width EXIF's PixelXDimension records (a converter's
     resize); else its FocalLengthIn35mmFilm times the image's diagonal over the
-    35 mm frame's. The principal point is the image's centre. A crop of the
-    photographs changes neither: give ``--camera`` then.
+    35 mm frame's. The principal point is the image's centre. A crop to
+    another shape than the one EXIF's PixelXDimension and PixelYDimension
+    record gives None; a crop to the same shape is taken for a resize: give
+    ``--camera`` for cropped photographs.
 
     Parameters
     ----------
@@ -123,11 +128,15 @@ def exif_camera(path) -> Camera | None:
         spec = image.spec()
         tags = {name: spec.getattribute(f"Exif:{name}") for name in (
             "FocalLength", "FocalPlaneXResolution", "FocalPlaneResolutionUnit",
-            "PixelXDimension", "FocalLengthIn35mmFilm")}
+            "PixelXDimension", "PixelYDimension", "FocalLengthIn35mmFilm")}
         width, height = int(spec.width), int(spec.height)
     finally:
         image.close()
     tags = {k: float(v) for k, v in tags.items() if isinstance(v, (int, float)) and v > 0}
+    if {"PixelXDimension", "PixelYDimension"} <= set(tags):  # cropped: another shape
+        shot = tags["PixelXDimension"] / tags["PixelYDimension"]
+        if min(abs(width / height / aspect - 1) for aspect in (shot, 1 / shot)) > CROP_ASPECT:
+            return None
     unit = FOCAL_PLANE_UNIT_MM.get(int(tags.get("FocalPlaneResolutionUnit", 0)))
     if {"FocalLength", "FocalPlaneXResolution"} <= set(tags) and unit:
         resized = width / tags.get("PixelXDimension", width)

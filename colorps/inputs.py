@@ -77,13 +77,17 @@ class CaptureFiles:
         if self.lights is None and self.light_intensities is not None:
             raise InputError("light intensities go with a light file (--lights)")
 
-    def with_exif_camera(self, paths) -> CaptureFiles:
-        """These inputs with "auto" replaced by the camera the first of ``paths``
-        (image files) whose EXIF records one records (:func:`colorps.camera.exif_camera`;
-        said by a CameraWarning), else by None (orthographic)."""
+    def with_exif_camera(self, infos) -> CaptureFiles:
+        """These inputs with "auto" replaced by the camera the EXIF of the first of
+        ``infos`` (:class:`colorps.io.ImageInfo`: the first gauge image, the first
+        scene image) records (:func:`colorps.camera.exif_camera`; said by a
+        CameraWarning), else by None (orthographic); None too when the images
+        differ in size (one stack was cropped: its principal point is not known)."""
         if self.camera != "auto":
             return self
-        camera = next(filter(None, map(exif_camera, paths)), None)
+        sizes = {(info.width, info.height) for info in infos}
+        camera = None if len(sizes) > 1 else next(
+            filter(None, (exif_camera(info.path) for info in infos)), None)
         if camera is not None:
             warnings.warn(f"no --camera: the camera of the images' EXIF, a focal length of "
                           f"{camera.focal:.0f} px ({camera.source}); give --camera when they "

@@ -145,7 +145,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         options = options.replace(tile=plan.rows)
         _check_memory(stacks, inputs, options, plan)
         stacks = _with_gauge_headers(stacks, inputs, options)
-        inputs = inputs.with_exif_camera([*stacks.gauge_paths[:1], *stacks.scene_paths[:1]])
+        inputs = inputs.with_exif_camera([*stacks.gauge_infos[:1], *stacks.scene_infos[:1]])
         mask = None
         if inputs.mask is not None:
             mask = read_mask(inputs.mask, stacks.shape[1:3])

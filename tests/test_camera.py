@@ -296,7 +296,9 @@ def write_tiff_with_exif(path, image, **tags):
 @pytest.mark.parametrize("tags, focal", [
     (dict(FocalLength=20.0, FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3), 400.0),
     (dict(FocalLength=20.0, FocalPlaneXResolution=508.0, FocalPlaneResolutionUnit=2,
-          PixelXDimension=520), 200.0),  # resized to half after the shot
+          PixelXDimension=520, PixelYDimension=400), 200.0),  # resized to half after the shot
+    (dict(FocalLength=20.0, FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3,
+          PixelXDimension=600, PixelYDimension=400), None),  # a 3:2 shot cropped to 13:10
     (dict(FocalLengthIn35mmFilm=50), 50 * np.hypot(260, 200) / np.hypot(36, 24)),
     (dict(FocalLength=20.0), None),  # no sensor size: no camera
     (dict(FocalLengthIn35mmFilm=1), None),  # 0.4 % of the diagonal: not a lens
@@ -351,3 +353,22 @@ def test_cli_camera_from_the_images_exif(tmp_path, capsys):
         else:
             assert report["camera"] is None
     assert errors["exif"] < 0.1 and errors["orthographic"] > 1.0
+
+
+def test_no_exif_camera_for_stacks_of_different_sizes(tmp_path):
+    """A gauge cropped out of the photographs (another size than the scene's) has
+    no known principal point: the run stays orthographic."""
+    from colorps.inputs import CaptureFiles
+    from colorps.io import read_info
+
+    lens = dict(FocalLength=20.0, FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3)
+    scene = read_info(write_tiff_with_exif(tmp_path / "s.tif", np.zeros((200, 260)), **lens))
+    gauge = read_info(write_tiff_with_exif(tmp_path / "g.tif", np.zeros((90, 90)), **lens))
+    files = CaptureFiles("s.tif", gauge="g.tif")
+    assert files.camera == "auto"
+    assert files.with_exif_camera([gauge, scene]).camera is None
+    with pytest.warns(UserWarning, match="focal length of 400 px"):
+        assert files.with_exif_camera([scene]).camera.fx == pytest.approx(400.0)
+    assert CaptureFiles("s.tif", gauge="g.tif", camera="orthographic").camera is None
+    with pytest.raises(InputError, match="camera"):
+        CaptureFiles("s.tif", gauge="g.tif", camera="fisheye")
