@@ -161,9 +161,9 @@ def read_camera(spec) -> Camera | str | None:
     Parameters
     ----------
     spec : str, Path, float or None
-        None or "orthographic": no camera (orthographic view); "auto" is
-        returned as it is (:func:`exif_camera`'s, once the files are known). A number: the
-        focal length in pixels (principal point at the image centre). A path:
+        None or "orthographic": no camera (orthographic view). "auto": returned
+        as it is (the files' EXIF camera, :func:`exif_camera`, once they are
+        known). A number: the focal length in pixels (principal point at the image centre). A path:
         a ``K.txt`` (3 x 3 matrix) or a ``.json`` file (see the module docstring).
 
     Examples

@@ -183,7 +183,6 @@ class Gauge:
         return cls(normals, mask, albedo, (float(cx), float(cy), float(radius)),
                    rim_margin=float(margin))
 
-
     def within(self, box: tuple[slice, slice]) -> Gauge:
         """The gauge in a box (rows, columns) of its images, its sphere's centre
         counted from the box's corner."""
