@@ -62,8 +62,10 @@ from colorps.finishes import Gloss
 from colorps.gauge import rim_margin
 from colorps.interreflection import without_interreflections
 from colorps.matte_lights import matte_sphere_lights
+from colorps.memory import kept_grids_mib
 from colorps.resolve import StackModel, resolve
 from colorps.shapes import dome_lights, folds_surface
+from colorps.tables import GaugeTables
 from colorps.virtual import virtual_gauge, with_own_finish
 
 NOISE = 0.003
@@ -150,13 +152,18 @@ def least_squares(stack, directions, mask) -> np.ndarray:
 def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask):
     """``reconstruct``, then the light a concave object bounces onto itself taken
     out (:func:`colorps.interreflection.without_interreflections`), as
-    ``colorps reconstruct`` does by default: the result and the measurements it
-    was solved from (None: ``stack``)."""
+    ``colorps reconstruct`` does by default (the gauge's side shared by every
+    solve, its grids by the passes): the result and the measurements it was
+    solved from (None: ``stack``)."""
+    tables = GaugeTables(0)
+
     def solve(images, pixels=None, model_scale=None):
         return reconstruct(images, gauge_stack, gauge, settings, model_scale=model_scale,
-                           mask=mask if pixels is None else pixels)
+                           mask=mask if pixels is None else pixels, tables=tables)
 
-    return without_interreflections(lambda: stack, solve(stack), solve, gauge, gauge_stack)[:2]
+    first = solve(stack)
+    tables.resize(kept_grids_mib("auto", stack.shape))
+    return without_interreflections(lambda: stack, first, solve, gauge, gauge_stack)[:2]
 
 
 def run_virtual(stack, lights: Lights, mask, settings=None):
