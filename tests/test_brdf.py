@@ -454,3 +454,19 @@ def test_a_plain_finish_between_the_grids_values_is_found(lights, monkeypatch, c
         assert len(tried) <= 16  # a few matches, not a scan
     else:
         assert brdf.roughness == 0.2 and set(tried) == {0.1, 0.2}  # (0: Lambert, beaten)
+
+
+def test_a_finish_is_scored_by_its_matches_with_or_without_refinement(lights):
+    """The fit scores candidate finishes by the scene's median match residual; its
+    quick matches use no light subsets, so the refinement changes no match, and
+    the score is taken without it: the same number."""
+    from colorps.virtual import _match_residual, _matched
+
+    scene = synth.smiley_surface(64)
+    stack = _render(scene, lights, GLOSSY, noise=0.002)
+    quick = resolve(Options(read_noise=0.002, gain=0.0), gauge=StackModel.rendered(
+        FLOAT_DARK_LEVEL)).replace(light_subsets=False, max_residual=None, max_distance=None)
+    refined = _matched(stack, lights, BRDF.lambert(), quick, scene.mask, 40)
+    assert refined.stats.refined > 0
+    assert _match_residual(stack, lights, BRDF.lambert(), quick, scene.mask, 40) == \
+        refined.stats.residual_median_noise_units
