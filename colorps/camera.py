@@ -1,4 +1,4 @@
-"""The camera: orthographic (the default) or a pinhole of known intrinsics.
+"""The camera: orthographic, or a pinhole of known intrinsics (given, or read from EXIF).
 
 A pinhole camera of focal lengths (fx, fy) and principal point (px, py), all in
 pixels, sees the pixel (x, y) along the ray ::
