@@ -61,10 +61,13 @@ def resolve_threads(threads: int | None) -> int:
     return int(min(threads, available))
 
 
-def mask_box(mask: np.ndarray) -> tuple[slice, slice]:
+def mask_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
     """Rows and columns of the smallest box holding every pixel of a 2-D boolean
-    mask (the whole image when none is set)."""
+    mask, grown by ``margin`` pixels within the image (the whole image when none
+    is set)."""
     rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
     if not len(rows):
         return slice(0, mask.shape[0]), slice(0, mask.shape[1])
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+    h, w = mask.shape
+    return (slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, h)),
+            slice(max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, w)))

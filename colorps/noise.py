@@ -308,7 +308,6 @@ def estimate_noise(gauge_stack: np.ndarray, usable: np.ndarray, base: NoiseModel
                       encoding=base.encoding, estimated=True)
 
 
-
 def lit_measurements(scene: np.ndarray, mask=None) -> np.ndarray:
     """(m, H, W) bool: each image's pixels of the (m, H, W, c) ``scene`` with every
     band finite and lit, within ``mask`` ((H, W) bool, optional). What

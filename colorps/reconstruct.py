@@ -295,10 +295,7 @@ def _gauge_side(gauge_stack, gauge: Gauge, run: Resolved) -> _GaugeSide:
     """The gauge in its mask's box, its signatures and noise model; a photographed
     gauge's spikes replaced first."""
     options = run.options
-    h, w = gauge.mask.shape
-    rows, cols = mask_box(gauge.mask)
-    box = (slice(max(rows.start - GAUGE_BOX_MARGIN, 0), min(rows.stop + GAUGE_BOX_MARGIN, h)),
-           slice(max(cols.start - GAUGE_BOX_MARGIN, 0), min(cols.stop + GAUGE_BOX_MARGIN, w)))
+    box = mask_box(gauge.mask, GAUGE_BOX_MARGIN)
     gauge, gauge_stack = gauge.within(box), gauge_stack[:, box[0], box[1]]
     spikes = 0
     if gauge.stack is None:  # photographed (a rendered gauge has no spikes)

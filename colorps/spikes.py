@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _spike_kernels
+from ._checks import mask_box
 
 __all__ = ["BRIGHT_PERCENTILE", "SPIKE_FLOOR", "SPIKE_RATIO", "replace_spikes",
            "spike_free"]
@@ -76,9 +77,7 @@ def replace_spikes(stack: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, int
     inside = np.asarray(mask, dtype=bool)
     if not inside.any():
         return stack, 0
-    rows, cols = np.nonzero(inside)
-    box = (slice(max(rows.min() - 1, 0), rows.max() + 2),
-           slice(max(cols.min() - 1, 0), cols.max() + 2))
+    box = mask_box(inside, 1)  # each pixel's 8 neighbours
     part = np.asarray(stack[:, box[0], box[1]], dtype=np.float32)
     values = np.where(np.isfinite(part), part, np.float32(0.0))
     bright = float(np.percentile(values.max(axis=(0, 3))[inside[box]], BRIGHT_PERCENTILE))
