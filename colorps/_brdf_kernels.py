@@ -9,7 +9,8 @@ the pixel's albedo a_pb, is::
     model_ipb = sum_k basis_ipk falloff_k + lobe_ip specular_b
 
 with ``basis`` the diffuse falloff's hat functions times the cosine of
-incidence (K of them, the last one's coefficient fixed to 1) and ``lobe`` the
+incidence (K of them, the last one's coefficient fixed to 1; at most two
+neighbouring hats are not zero, which the normal equations rely on) and ``lobe`` the
 highlight lobe times the cosine. Each measurement has a base weight w (0: not
 used) and a robust (Huber) factor r.
 
@@ -92,8 +93,16 @@ def huber_normal_equations(obs, weight, robust, basis, lobe, falloff, specular, 
         stop = min(first + CHUNK_PIXELS, n)
         part = normals[chunk]
         part_right = rights[chunk]
+        loss = 0.0
+        total = 0.0
         for i in range(m):
             for p in range(first, stop):
+                # The hats overlap in pairs: basis[i, p] is zero but for
+                # knots j and j + 1 (only j + 1 may be the fixed last knot).
+                j0 = 0
+                while j0 < k - 1 and basis[i, p, j0] == 0.0:
+                    j0 += 1
+                pair = min(j0 + 2, k - 1)
                 diffuse = _diffuse(basis, falloff, i, p)
                 l_ip = lobe[i, p]
                 a2w_sum = 0.0
@@ -108,26 +117,28 @@ def huber_normal_equations(obs, weight, robust, basis, lobe, falloff, specular, 
                     residual = abs((obs[i, p, b] - a * model) * np.sqrt(w))
                     if residual <= threshold:
                         r = 1.0
-                        losses[chunk] += residual * residual
+                        loss += residual * residual
                     else:
                         r = threshold / max(residual, 1e-30)
-                        losses[chunk] += 2.0 * threshold * residual - threshold * threshold
+                        loss += 2.0 * threshold * residual - threshold * threshold
                     robust[i, p, b] = r
                     wr = w * r
-                    totals[chunk] += wr
+                    total += wr
                     a2w = a * a * wr
                     awt = a * wr * (obs[i, p, b] - basis[i, p, k - 1] * a)
                     a2w_sum += a2w
                     awt_sum += awt
                     part[k - 1 + b, k - 1 + b] += l_ip * l_ip * a2w
                     part_right[k - 1 + b] += l_ip * awt
-                    for j in range(k - 1):
+                    for j in range(j0, pair):
                         part[j, k - 1 + b] += basis[i, p, j] * l_ip * a2w
-                for j in range(k - 1):
+                for j in range(j0, pair):
                     bj = basis[i, p, j]
                     part_right[j] += bj * awt_sum
-                    for q in range(j, k - 1):
+                    for q in range(j, pair):
                         part[j, q] += bj * basis[i, p, q] * a2w_sum
+        losses[chunk] = loss
+        totals[chunk] = total
     normal[:, :] = 0.0
     right[:] = 0.0
     for chunk in range(chunks):

@@ -251,7 +251,11 @@ def test_compiled_fit_passes_are_the_plain_formulas():
     m, n, c, k = 9, 300, 3, len(DIFFUSE_KNOTS)  # more pixels than one chunk
     obs = rng.uniform(0, 1, (m, n, c))
     weight = np.where(rng.uniform(size=(m, n, c)) < 0.2, 0.0, rng.uniform(0.5, 2, (m, n, c)))
-    basis = rng.uniform(0, 1, (m, n, k))
+    # The diffuse hats times a per-measurement factor (Oren-Nayar's): two
+    # neighbouring knots of K at most are not zero, and none under no light.
+    from colorps.brdf import _hats
+    cosine = np.clip(rng.uniform(-0.3, 1, (m, n)), 0, 1)
+    basis = _hats(cosine) * rng.uniform(0.5, 1.5, (m, n, 1))
     lobe = rng.uniform(0, 1, (m, n))
     falloff, specular = rng.uniform(0.5, 1, k), rng.uniform(0, 0.1, c)
     robust = rng.uniform(0.2, 1, (m, n, c))
