@@ -78,6 +78,7 @@ from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock, check_solved
 from .tables import GaugeTables
 from .tiles import StackFiles, dask_client, reconstruct_tiled
+from .transfer import recode
 from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
 
 __all__ = ["integrate_file", "reconstruct_files"]
@@ -341,7 +342,7 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
             checked = check_lights(scene, stacks.light_set, mask, stacks.scene_paths[0],
                                    encoding, top_code(stacks.scene_infos[0]))
             if checked["decoded_as"]:
-                scene, run = _read_as_linear(scene, stacks, run, progress)
+                scene, run = _read_as_linear(scene, stacks, run)
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress, camera=inputs.camera)
@@ -364,22 +365,21 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
                           top_code(stacks.gauge_infos[0]))
     if checked["decoded_as"]:
-        gauge_stack, _ = read_stack(stacks.gauge_paths, "linear", name="gauge",
-                                    warn_lossy=False)  # (said on the first reading)
+        scene, run = _read_as_linear(scene, stacks, run, gauge_stack)
         gauge = photographed(gauge_stack)
-        scene, run = _read_as_linear(scene, stacks, run, progress)
     return gauge, gauge_stack, run, None, checked, scene
 
 
-def _read_as_linear(scene, stacks: _Stacks, run: Resolved, progress: bool):
-    """The scene and the settings of a run whose integer files are read as linear
-    (read again: decoding the files costs less than re-encoding the stack)."""
+def _read_as_linear(scene, stacks: _Stacks, run: Resolved, gauge_stack=None):
+    """The scene and the settings of a run whose integer files, read as sRGB, are
+    read as linear: recoded in place (faster than decoding the files again), the
+    gauge's stack too when given."""
     options = run.requested.replace(encoding="linear")  # levels still "auto" if asked
     if isinstance(scene, StackFiles):
         scene = StackFiles(scene.paths, scene.shape, "linear")
-    elif top_code(stacks.scene_infos[0]) is not None:
-        scene, _ = read_stack(stacks.scene_paths, "linear", name="scene", progress=progress,
-                              warn_lossy=False)  # (said on the first reading)
+    for stack, infos in ((scene, stacks.scene_infos), (gauge_stack, stacks.gauge_infos)):
+        if isinstance(stack, np.ndarray) and top_code(infos[0]) is not None:
+            recode(stack, top_code(infos[0]), "srgb", "linear")
     return scene, resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], "linear"),
                           gauge=None if stacks.light_set is not None else
                           StackModel.of_file(stacks.gauge_infos[0], "linear"))

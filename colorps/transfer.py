@@ -6,6 +6,9 @@ decoded by looking each code up in a table of the decoded codes
 every pixel: 96 16-bit RGB photographs of 612 x 512 decode in 0.1 s instead of
 3.7 s, to the same float32 values bit for bit (a test). The transfer function
 itself is colour-science's.
+
+A stack decoded one way is decoded the other (:func:`recode`) by finding each
+value's code in the first table: faster than decoding the files again.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["TABLE_TYPES", "decoding_table", "srgb_decode"]
+__all__ = ["TABLE_TYPES", "decoding_table", "recode", "srgb_decode"]
 
 #: Pixel types decoded by table (OpenImageIO's type names).
 TABLE_TYPES = ("uint8", "uint16")
@@ -56,3 +59,44 @@ def decoding_table(top: int, encoding: str) -> np.ndarray:
     table = srgb_decode(values) if encoding == "srgb" else values
     table.setflags(write=False)
     return table
+
+
+def recode(stack: np.ndarray, top: int, decoded_as: str, encoding: str) -> None:
+    """Decode, in place, an integer file's values read as ``decoded_as`` as ``encoding``.
+
+    Parameters
+    ----------
+    stack : ndarray of float32
+        Values of :func:`decoding_table` (``top``, ``decoded_as``), as read; C-contiguous.
+    top : int
+        The files' largest code (255, 65535).
+    decoded_as, encoding : {"linear", "srgb"}
+        How the values were decoded, and how they are to be.
+
+    Raises
+    ------
+    ValueError
+        When some value is no code's in that table (the stack is then partly
+        recoded).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from colorps.transfer import decoding_table, recode
+    >>> values = decoding_table(255, "srgb")[[0, 128, 255]]  # codes read as sRGB
+    >>> recode(values, 255, "srgb", "linear")
+    >>> [round(float(v), 4) for v in values]  # the codes 0, 128, 255 read as linear
+    [0.0, 0.502, 1.0]
+    """
+    from ._transfer_kernels import recode as recode_kernel
+
+    if stack.dtype != np.float32 or not stack.flags.c_contiguous:
+        raise ValueError("recode: expected a C-contiguous float32 stack")
+    if decoded_as == encoding:
+        return
+    from_table = decoding_table(top, decoded_as)
+    starts = np.searchsorted(from_table, np.arange(top + 1) / (top + 1)).astype(np.int64)
+    missing = recode_kernel(values=stack.reshape(-1), from_table=from_table,
+                            to_table=decoding_table(top, encoding), starts=starts)
+    if missing:
+        raise ValueError(f"recode: {missing} values are no {top}-code's {decoded_as} value")

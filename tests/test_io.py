@@ -233,6 +233,25 @@ def test_integer_files_decode_by_table_to_the_transfer_functions_values(tmp_path
     np.testing.assert_array_equal(read_image(path, encoding, rows=(2, 5))[0], expected[2:5])
 
 
+@pytest.mark.parametrize("top", [255, 65535])
+@pytest.mark.parametrize("decoded_as, encoding", [("srgb", "linear"), ("linear", "srgb")])
+def test_a_stack_read_one_way_is_recoded_to_the_others_values(rng, top, decoded_as, encoding):
+    """Every code's value read as one encoding becomes, bit for bit, its value
+    read as the other; a value that is no code's is refused."""
+    from colorps.transfer import decoding_table, recode
+
+    codes = np.concatenate([np.arange(top + 1), rng.integers(0, top + 1, 5000)])
+    stack = decoding_table(top, decoded_as)[codes].reshape(-1, 1, 1, 1)
+    recode(stack, top, decoded_as, encoding)
+    np.testing.assert_array_equal(stack.ravel(), decoding_table(top, encoding)[codes])
+    foreign = decoding_table(top, decoded_as)[[0, 5, top]]
+    foreign[1] = np.nextafter(foreign[1], np.float32(1))
+    with pytest.raises(ValueError, match="1 values"):
+        recode(foreign, top, decoded_as, encoding)
+    with pytest.raises(ValueError, match="float32"):
+        recode(np.zeros(3), top, decoded_as, encoding)
+
+
 def test_stack_read_on_threads_keeps_the_order_and_names_a_bad_file(tmp_path, monkeypatch):
     from colorps import io
 
