@@ -188,19 +188,30 @@ class BRDF:
         """
         normals = np.asarray(normals, dtype=np.float64)
         intensities = np.asarray(intensities, dtype=np.float64)
-        cosine, cos_half = _angles(normals, directions, views)
-        diffuse = cosine * np.interp(cosine, DIFFUSE_KNOTS, self.falloff)
-        if self.roughness:
-            diffuse = diffuse * oren_nayar_factor(normals, directions, self.roughness, views)
-        specular = np.broadcast_to(self.specular, (intensities.shape[1],)) \
+        bands = intensities.shape[1]
+        specular = np.broadcast_to(self.specular, (bands,)) \
             if len(self.specular) == 1 else np.array(self.specular)
-        if len(specular) != intensities.shape[1]:
-            raise InputError(f"brdf: specular has {len(specular)} bands but the lights "
-                             f"{intensities.shape[1]}")
-        value = np.repeat(diffuse[..., None], intensities.shape[1], axis=-1)
-        if np.any(specular):
-            value += _lobe(cosine, cos_half, self.shininess)[..., None] * specular
-        return value * intensities[:, None, :]
+        if len(specular) != bands:
+            raise InputError(f"brdf: specular has {len(specular)} bands but the lights {bands}")
+        cosine, cos_half = _angles(normals, directions, views)
+        diffuse = np.interp(cosine, DIFFUSE_KNOTS, self.falloff)
+        diffuse *= cosine
+        if self.roughness:
+            diffuse *= oren_nayar_factor(normals, directions, self.roughness, views)
+        lobe = _lobe(cosine, cos_half, self.shininess) if np.any(specular) else None
+        del cosine, cos_half
+        # A band at a time, into the result: no (m, N, c) temporaries (fresh
+        # memory costs more than the arithmetic here).
+        value = np.empty((*diffuse.shape, bands))
+        for b in range(bands):
+            band = value[..., b]
+            if lobe is None:
+                np.multiply(diffuse, intensities[:, b, None], out=band)
+            else:
+                np.multiply(lobe, specular[b], out=band)
+                band += diffuse
+                band *= intensities[:, b, None]
+        return value
 
     def as_dict(self) -> dict:
         return dict(model="diffuse falloff x Oren-Nayar + Blinn-Phong",
