@@ -75,12 +75,7 @@ def to_bool(masks: np.ndarray, m: int) -> np.ndarray:
 
 def count(masks: np.ndarray) -> np.ndarray:
     """(...) number of images in each (..., words) mask."""
-    v = np.asarray(masks, dtype=np.uint64)
-    total = np.zeros(v.shape[:-1], dtype=np.int64)
-    while v.any():
-        total += (v & np.uint64(1)).sum(axis=-1, dtype=np.int64)
-        v = v >> np.uint64(1)
-    return total
+    return np.bitwise_count(np.asarray(masks, dtype=np.uint64)).sum(axis=-1, dtype=np.int64)
 
 
 def is_empty(masks: np.ndarray) -> np.ndarray:

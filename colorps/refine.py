@@ -309,10 +309,22 @@ def misfit_radius(unit_radius: np.ndarray, residual: np.ndarray,
     (P,) ndarray
         Radius in degrees; 0 where the noise explains the residual.
     """
+    # In place, a few (P,) arrays at a time (P: millions of pixels).
     dof = np.maximum(np.asarray(dof, dtype=np.float64), 1.0)
-    r2 = np.nan_to_num(np.asarray(residual, dtype=np.float64), nan=1.0) ** 2
-    excess = np.maximum(r2 - 1.0 - MISFIT_NOISE_SDS * np.sqrt(2.0 / dof), 0.0)
-    return unit_radius / RADIUS_68 * np.sqrt(excess * dof)
+    excess = np.nan_to_num(np.asarray(residual, dtype=np.float64), nan=1.0)
+    excess **= 2
+    excess -= 1.0
+    spread = np.divide(2.0, dof)
+    np.sqrt(spread, out=spread)
+    spread *= MISFIT_NOISE_SDS
+    excess -= spread
+    del spread
+    np.maximum(excess, 0.0, out=excess)
+    excess *= dof
+    np.sqrt(excess, out=excess)
+    excess *= unit_radius
+    excess /= RADIUS_68
+    return excess
 
 
 def _refine_block(gauge, pixels, tables, gauge_normals: np.ndarray, model_scale: float,

@@ -300,3 +300,22 @@ def test_a_pixels_refinement_does_not_depend_on_the_other_pixels(tmp_path):
     solved = whole.solved
     assert solved.mean() > 0.99
     np.testing.assert_array_equal(normals[solved], whole.normals[solved])
+
+
+def test_misfit_radius_is_its_formula():
+    """sqrt((r^2 - 1 - k sqrt(2 / dof)) dof) noise radii, 0 where the noise
+    explains r (NaN: explained), whatever the order of its steps."""
+    from colorps.refine import MISFIT_NOISE_SDS, RADIUS_68, misfit_radius
+
+    rng = np.random.default_rng(5)
+    unit = rng.uniform(0.01, 1.0, 1000)
+    residual = rng.uniform(0.0, 4.0, 1000)
+    residual[:10] = np.nan
+    dof = rng.integers(0, 300, 1000)
+    d = np.maximum(dof, 1.0)
+    r2 = np.nan_to_num(residual, nan=1.0) ** 2
+    expected = unit / RADIUS_68 * np.sqrt(
+        np.maximum(r2 - 1.0 - MISFIT_NOISE_SDS * np.sqrt(2.0 / d), 0.0) * d)
+    got = misfit_radius(unit, residual, dof)
+    np.testing.assert_allclose(got, expected, rtol=1e-12)
+    assert (got[:10] == 0).all() and (got > 0).mean() > 0.5

@@ -199,3 +199,15 @@ def test_one_bounce_interreflection_lights_folds_not_open_surfaces():
     exposed = folds.mask & (sky > 0.97)
     assert extra[hidden].mean() > 5 * max(extra[exposed].mean(), 1e-4)
     assert (bounced >= plain - 1e-6).all()
+
+
+def test_light_masks_round_trip_and_count_every_light():
+    """Masks of up to 130 images (three words): the images set come back, and
+    their count is the number of True flags."""
+    rng = np.random.default_rng(3)
+    flags = rng.uniform(size=(50, 130)) < rng.uniform(size=(50, 1))
+    flags[0] = False
+    flags[1] = True
+    masks = light_masks.from_bool(flags)
+    np.testing.assert_array_equal(light_masks.to_bool(masks, 130), flags)
+    np.testing.assert_array_equal(light_masks.count(masks), flags.sum(axis=1))
