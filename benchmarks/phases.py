@@ -25,7 +25,8 @@ import threading
 import time
 from pathlib import Path
 
-#: (module, function, label) of the steps timed, in the order they run.
+#: (module, function, label) of the steps timed, in the order they run (each
+#: patched in the module that calls it).
 PHASES = (
     ("colorps.pipeline", "read_stack", "read images"),
     ("colorps.pipeline", "find_sphere", "find the gauge sphere"),
@@ -34,9 +35,10 @@ PHASES = (
     ("colorps.reconstruct", "_refine", "sub-pixel refinement"),
     ("colorps.reconstruct", "_albedo", "albedo"),
     ("colorps.reconstruct", "_reasons", "reasons"),
-    ("colorps.integrate", "integrate", "height integration (thread)"),
+    ("colorps.reconstruct", "_misfit_radius", "misfit radius"),
+    ("colorps.pipeline", "integrate", "height integration (thread)"),
     ("colorps.outputs", "_write_folder", "write every file"),
-    ("colorps.viewer", "write_viewer", "the viewer (within writing)"),
+    ("colorps.outputs", "write_viewer", "the viewer (within writing)"),
 )
 #: Resident memory is sampled this often (seconds).
 SAMPLE_SECONDS = 0.02
