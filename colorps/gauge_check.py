@@ -39,8 +39,8 @@ from .noise import NoiseModel, estimate_noise, lit_measurements
 if TYPE_CHECKING:
     from .results import ReconstructionStats
 
-__all__ = ["ENCODING_RATIO", "POOR_FIT", "check_gauge", "check_lights", "finish_differs",
-           "judge_finish", "lambertian_fit", "lights_fit", "noisier_scene", "sphere_fit"]
+__all__ = ["ENCODING_RATIO", "POOR_FIT", "as_linear", "check_gauge", "check_lights",
+           "finish_differs", "judge_finish", "lambertian_fit", "lights_fit", "noisier_scene", "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -208,6 +208,20 @@ def linear_codes(values: np.ndarray, top_code: int) -> np.ndarray:
     codes = colour.cctf_encoding(np.clip(np.asarray(values, np.float64), 0, 1),
                                  function="sRGB")
     return np.rint(codes * top_code).astype(np.float32) * np.float32(1.0 / top_code)
+
+
+def as_linear(stack: np.ndarray, paths, info, name: str) -> np.ndarray:
+    """A stack of integer files read as sRGB, as a linear read gives it, bit for bit:
+    8- and 16-bit codes recoded in place (:func:`colorps.transfer.recode`, faster than
+    decoding the files again), other integer types read again. ``info``: the first
+    file's :class:`~colorps.io.ImageInfo`; ``name``: the stack's, for errors."""
+    from .io import read_stack, top_code
+    from .transfer import TABLE_TYPES, recode
+
+    if info.pixel_type not in TABLE_TYPES:
+        return read_stack(paths, "linear", name=name, warn_lossy=False)[0]
+    recode(stack, top_code(info), "srgb", "linear")
+    return stack
 
 
 def _encoding_verdict(fit, stack, fitted: float, encoding: str, top_code: int | None,

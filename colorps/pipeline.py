@@ -34,6 +34,7 @@ from .errors import InputError, InterreflectionWarning
 from .figures import overview_step
 from .gauge import Gauge, find_sphere, rim_margin
 from .gauge_check import (
+    as_linear,
     check_gauge,
     check_lights,
     finish_differs,
@@ -78,7 +79,6 @@ from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock, check_solved
 from .tables import GaugeTables
 from .tiles import StackFiles, dask_client, reconstruct_tiled
-from .transfer import recode
 from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
 
 __all__ = ["integrate_file", "reconstruct_files"]
@@ -365,21 +365,20 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
                           top_code(stacks.gauge_infos[0]))
     if checked["decoded_as"]:
-        scene, run = _read_as_linear(scene, stacks, run, gauge_stack)
+        gauge_stack = as_linear(gauge_stack, stacks.gauge_paths, stacks.gauge_infos[0], "gauge")
         gauge = photographed(gauge_stack)
+        scene, run = _read_as_linear(scene, stacks, run)
     return gauge, gauge_stack, run, None, checked, scene
 
 
-def _read_as_linear(scene, stacks: _Stacks, run: Resolved, gauge_stack=None):
+def _read_as_linear(scene, stacks: _Stacks, run: Resolved):
     """The scene and the settings of a run whose integer files, read as sRGB, are
-    read as linear: recoded in place (faster than decoding the files again), the
-    gauge's stack too when given."""
+    to be read as linear (:func:`gauge_check.as_linear`)."""
     options = run.requested.replace(encoding="linear")  # levels still "auto" if asked
     if isinstance(scene, StackFiles):
         scene = StackFiles(scene.paths, scene.shape, "linear")
-    for stack, infos in ((scene, stacks.scene_infos), (gauge_stack, stacks.gauge_infos)):
-        if isinstance(stack, np.ndarray) and top_code(infos[0]) is not None:
-            recode(stack, top_code(infos[0]), "srgb", "linear")
+    elif top_code(stacks.scene_infos[0]) is not None:
+        scene = as_linear(scene, stacks.scene_paths, stacks.scene_infos[0], "scene")
     return scene, resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], "linear"),
                           gauge=None if stacks.light_set is not None else
                           StackModel.of_file(stacks.gauge_infos[0], "linear"))

@@ -263,3 +263,28 @@ def test_stack_read_on_threads_keeps_the_order_and_names_a_bad_file(tmp_path, mo
     paths[6].write_bytes(paths[6].read_bytes()[:60])  # truncated
     with pytest.raises(ImageReadError, match="img_06.png"):
         read_stack(paths, "linear")
+
+
+@pytest.mark.parametrize("pixel_type", ["uint8", "uint16", "int16"])
+def test_a_stack_read_as_srgb_becomes_the_linear_read(tmp_path, rng, pixel_type):
+    """gauge_check.as_linear: the stack of integer files read as sRGB (auto) is,
+    bit for bit, the stack read as linear, whether recoded by table (8/16-bit)
+    or read again (other integer types)."""
+    import OpenImageIO as oiio
+
+    from colorps.gauge_check import as_linear
+    from colorps.io import read_info
+
+    paths = []
+    for k in range(3):
+        path = tmp_path / f"img_{k}.tif"
+        image = rng.uniform(0, 1, (5, 7, 3)).astype(np.float32)
+        out = oiio.ImageOutput.create(str(path))
+        out.open(str(path), oiio.ImageSpec(7, 5, 3, pixel_type))
+        out.write_image(image)
+        out.close()
+        paths.append(path)
+    stack, _ = read_stack(paths, "auto")
+    linear, _ = read_stack(paths, "linear")
+    assert not np.array_equal(stack, linear)
+    np.testing.assert_array_equal(as_linear(stack, paths, read_info(paths[0]), "scene"), linear)
