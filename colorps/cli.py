@@ -16,11 +16,12 @@ from . import __version__
 from .camera import read_camera
 from .errors import ColorPSError, InputError
 from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
+from .heights import integrate_file
 from .inputs import CaptureFiles
 from .light_files import calibrate_lights_files
 from .memory import AUTO_MEMORY_FRACTION
 from .options import FLOAT_DARK_LEVEL, NORMAL_CONVENTIONS, Options
-from .pipeline import integrate_file, reconstruct_files
+from .pipeline import reconstruct_files
 from .relight import FINISHES, RELIT_FORMATS
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
@@ -406,9 +407,8 @@ COMPILE_NOTICE = ("colorps: compiling its numba kernels for this machine (once a
 
 @contextlib.contextmanager
 def _compile_notice(enabled: bool = True, package: str = __package__):
-    """Within the context, print COMPILE_NOTICE to stderr the first time numba
-    compiles a kernel of ``package`` (numba reports a compile only when its
-    cache has none for the kernel), so a long first run is not taken for a hang."""
+    """Within the context, print COMPILE_NOTICE the first time numba compiles a kernel
+    of ``package`` (not cached), so that a long first run is not taken for a hang."""
     from numba.core import event
 
     class Notice(event.Listener):

@@ -16,6 +16,7 @@ __all__ = [
     "ImageReadError",
     "InputError",
     "InterreflectionWarning",
+    "LightAxesWarning",
     "LossyInputWarning",
     "LowSolvedWarning",
     "OutputError",
@@ -74,6 +75,11 @@ class ExposureWarning(ColorPSWarning):
 
 class InterreflectionWarning(ColorPSWarning):
     """An object that lights itself was solved with its bounced light left in."""
+
+
+class LightAxesWarning(ColorPSWarning):
+    """One axis of the light file looks mirrored (the normals solved under it are
+    far less integrable than their mirror image)."""
 
 
 class CameraWarning(ColorPSWarning):

@@ -1,4 +1,4 @@
-"""Files in, files out: the work behind ``colorps reconstruct`` and ``colorps integrate``.
+"""Files in, files out: the work behind ``colorps reconstruct``.
 
 :func:`reconstruct_files` reads top to bottom, each step a call into its own
 module: check the output folder (:mod:`colorps.outputs`), read the headers and
@@ -24,7 +24,6 @@ import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -62,15 +61,14 @@ from .io import (
     top_code,
     warn_lossy_stack,
 )
+from .light_axes import check_axes
 from .lights import read_lights
 from .memory import TilePlan, kept_grids_mib, plan_tiles, release_freed_memory
 from .options import Options
 from .outputs import (
     TILED_EXR_SIDE,
     Exports,
-    check_height_targets,
     prepare_output_dir,
-    save_height,
     save_reconstruction,
 )
 from .pairing import check_natural_order, pair_lights, pairing_record
@@ -81,13 +79,7 @@ from .tables import GaugeTables
 from .tiles import StackFiles, dask_client, reconstruct_tiled
 from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
 
-__all__ = ["integrate_file", "reconstruct_files"]
-
-#: A normal map's finite pixels must be unit vectors within this (half-float
-#: files store them to about 1e-3), all but MAX_NON_UNIT_FRACTION of them.
-UNIT_TOLERANCE = 0.01
-MAX_NON_UNIT_FRACTION = 0.01
-
+__all__ = ["reconstruct_files"]
 
 def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = None,
                       overwrite: bool = False, progress: bool = True,
@@ -176,6 +168,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                                                  (stacks.light_set, virtual, inputs.camera),
                                                  progress, tables)
         check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+        checked = _with_axes(checked, result, inputs)
         result, solved_from, bounced, moved = _without_interreflections(
             result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress, tables)
         del tables  # (its grids)
@@ -371,9 +364,16 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     return gauge, gauge_stack, run, None, checked, scene
 
 
+def _with_axes(checked: dict | None, result: Reconstruction, inputs: CaptureFiles):
+    """The lights check of a run with a light file, with whether its axes look
+    mirrored (:func:`light_axes.check_axes`, on the first solve's normals)."""
+    if inputs.lights is None:
+        return checked
+    return {**(checked or {}), "axes": check_axes(result.normals, result.solved, inputs.lights)}
+
+
 def _read_as_linear(scene, stacks: _Stacks, run: Resolved):
-    """The scene and the settings of a run whose integer files, read as sRGB, are
-    to be read as linear (:func:`gauge_check.as_linear`)."""
+    """The scene and settings of a run whose integer files, read as sRGB, are linear."""
     options = run.requested.replace(encoding="linear")  # levels still "auto" if asked
     if isinstance(scene, StackFiles):
         scene = StackFiles(scene.paths, scene.shape, "linear")
@@ -545,54 +545,3 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
     record["kept"] = bool(again[0].stats.residual_median_noise_units
                           <= result.stats.residual_median_noise_units)
     return again if record["kept"] else (result, run, finish)
-
-
-def integrate_file(normals_path, out, *, mask_path=None, weights_path=None,
-                   method: Literal["poisson", "dct"] = "poisson", mesh=None,
-                   overwrite: bool = False):
-    """Integrate a normal-map file into a height-map file (and optionally a mesh).
-
-    Parameters
-    ----------
-    normals_path : str or Path
-        Normal map with X, Y, Z in its first three channels (e.g. normal.exr).
-    out : str or Path
-        Height map to write (.exr).
-    mask_path, weights_path : str or Path, optional
-        Mask image; quality map of a reconstruction (see
-        :func:`colorps.weights_from_quality`).
-    method : {"poisson", "dct"}
-    mesh : str or Path, optional
-        Also write a mesh (.ply or .obj).
-
-    Returns
-    -------
-    (H, W) ndarray
-        The height map.
-    """
-    check_height_targets(out, mesh, overwrite=overwrite)  # fail before the work
-    normals, _ = read_image(normals_path, "linear")
-    if not 3 <= normals.shape[2] <= 4:  # (a fourth: alpha)
-        raise InputError(f"{normals_path}: a normal map has 3 channels (X, Y, Z), got "
-                         f"{normals.shape[2]}")
-    normals = normals[..., :3]
-    finite = np.isfinite(normals).all(axis=-1)
-    if not finite.any():
-        raise InputError(f"{normals_path}: holds no finite normal (all NaN or Inf)")
-    length = np.linalg.norm(normals[finite], axis=-1)
-    off = np.abs(length - 1.0) > UNIT_TOLERANCE
-    if off.mean() > MAX_NON_UNIT_FRACTION:
-        raise InputError(
-            f"{normals_path}: is not a normal map: {off.mean():.0%} of its finite pixels "
-            f"are not unit vectors (median length {np.median(length):.3g}); colorps writes "
-            "normal.exr with X, Y, Z of unit length")
-    mask = None if mask_path is None else read_mask(mask_path, normals.shape[:2])
-    weights = None
-    if weights_path is not None:
-        quality, _ = read_image(weights_path, "linear")
-        if quality.shape[:2] != normals.shape[:2]:
-            raise InputError(f"{weights_path}: size differs from {normals_path}")
-        weights = weights_from_quality(quality[..., 0])
-    height = integrate(normals, mask, weights=weights, method=method)
-    save_height(height, out, mesh=mesh, overwrite=overwrite)
-    return height

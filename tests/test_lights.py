@@ -150,3 +150,61 @@ def test_bad_light_files_name_the_file_at_fault(tmp_path):
     wrong_count.write_text("5\n0 0 1\n0.6 0 0.8\n0 0.6 0.8\n")
     with pytest.raises(InputError, match="count.txt: line 1"):
         read_lights(wrong_count)
+
+
+def test_the_curl_of_a_surfaces_normals_tells_a_mirrored_axis():
+    """A sphere's normals have (next to) no curl, their mirror image in y or x
+    a large one; a mirrored axis is flagged, the truth, a surface that bends in
+    one direction only, noise and a handful of pixels are not."""
+    from colorps.errors import LightAxesWarning
+    from colorps.light_axes import check_axes, curl_medians
+
+    ball = synth.sphere_surface(101, 45)
+    normals = np.where(ball.mask[..., None], ball.normals, np.nan)
+    as_solved, mirrored, pixels = curl_medians(normals, ball.mask)
+    assert pixels > 5000 and as_solved < 0.1 * mirrored
+    for axis in (0, 1):  # x or y mirrored: the same curl
+        flipped = normals * np.where(np.arange(3) == axis, -1.0, 1.0)
+        flipped_as_solved, flipped_mirrored, _ = curl_medians(flipped, ball.mask)
+        assert (flipped_as_solved, flipped_mirrored) == pytest.approx((mirrored, as_solved))
+        with pytest.warns(LightAxesWarning, match="lights.txt: one axis"):
+            assert check_axes(flipped, ball.mask, "lights.txt")["looks_mirrored"]
+    both = normals * np.array([-1.0, -1.0, 1.0])  # half a turn: inside out, integrable
+    assert not check_axes(both, ball.mask, "lights.txt")["looks_mirrored"]
+    assert not check_axes(normals, ball.mask, "lights.txt")["looks_mirrored"]
+    # A cylinder along y bends in x only: its curl tells nothing either way.
+    x = np.linspace(-0.9, 0.9, 80)
+    tube = np.zeros((60, 80, 3))
+    tube[..., 0], tube[..., 2] = x, np.sqrt(1 - x ** 2)
+    solved = np.ones((60, 80), bool)
+    record = check_axes(tube * [1, -1, 1], solved, "lights.txt")
+    assert not record["looks_mirrored"] and record["pixels"] > 4000
+    rng = np.random.default_rng(0)
+    noise = rng.normal(size=(80, 80, 3)) * [0.2, 0.2, 0] + [0, 0, 1]
+    noise /= np.linalg.norm(noise, axis=-1, keepdims=True)
+    assert not check_axes(noise, np.ones((80, 80), bool), "lights.txt")["looks_mirrored"]
+    few = np.zeros_like(ball.mask)
+    few[45:55, 30:40] = True
+    assert check_axes(normals * [1, -1, 1], few & ball.mask, "l.txt")["pixels"] < 500
+
+
+def test_a_light_file_with_y_down_is_said_to_look_mirrored(tmp_path, capsys):
+    """Through the command line: the same capture with its light file's y values
+    negated (image rows for y) solves, says the lights look mirrored and records
+    it; the true file does not."""
+    data = tmp_path / "capture"
+    info = synth.write_synthetic(data, size=64, images=8, theta=40, noise=0.002)
+    directions = np.array(info["light_directions"])[:, 0]
+    colours = np.array(info["light_colours"])[:, 0]
+    write_lights(Lights(directions, colours), data / "lights.txt")
+    write_lights(Lights(directions * [1, -1, 1], colours), data / "y_down.txt")
+    said = {}
+    for name in ("lights.txt", "y_down.txt"):
+        out = tmp_path / name
+        assert main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
+                     str(data / name), "--mask", str(data / "mask.png"), "--out", str(out),
+                     "--quiet", "--no-height", "--no-viewer"]) == 0
+        said[name] = ("one axis of the lights looks mirrored" in capsys.readouterr().err,
+                      json.loads((out / "report.json").read_text())["lights_check"]["axes"])
+    assert said["lights.txt"][0] is False and not said["lights.txt"][1]["looks_mirrored"]
+    assert said["y_down.txt"][0] is True and said["y_down.txt"][1]["looks_mirrored"]
