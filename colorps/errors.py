@@ -78,8 +78,8 @@ class InterreflectionWarning(ColorPSWarning):
 
 
 class LightAxesWarning(ColorPSWarning):
-    """One axis of the light file looks mirrored (the normals solved under it are
-    far less integrable than their mirror image)."""
+    """The light file's x and y look mirrored, swapped or turned (the normals solved
+    under it are far less integrable than with that undone)."""
 
 
 class CameraWarning(ColorPSWarning):

@@ -1,17 +1,18 @@
-"""Does the normal map say that one axis of the light file is mirrored?
+"""Does the normal map say that the light file's x and y axes are wrong?
 
-A light file whose y axis points down (image rows) instead of up, or whose x
-axis points left, gives normals mirrored the same way: the shading fits them
-exactly, so the lights check and the match residuals see nothing. The surface
-does: the normals of a height field z(x, y) have no curl (z_xy = z_yx), while
-their mirror image in x or in y has a curl of 2 z_xy wherever the surface bends
-in x and y together (a sphere, a face; not a plane or a cylinder along an axis).
-:func:`check_axes` compares the median |curl| of the slopes of the solved
-normals with that of their mirror image: far larger says the light file's axes
-are mirrored. Mirrored in both x and y (turned half a turn) the normals are those
-of the surface turned inside out, as integrable as the truth: that is the
-convex-concave ambiguity of photometric stereo, which no check on the normals
-can see.
+A light file whose y axis points down (image rows) instead of up, whose x and y
+columns are swapped, or that is turned a quarter turn about the view axis gives
+normals changed the same way: the shading fits them exactly, so the lights check
+and the match residuals see nothing. The surface does: the normals of a height
+field z(x, y) have no curl (z_xy = z_yx), while a mirror image or a quarter turn
+of them, left at the same pixels, has one wherever the surface bends (a sphere,
+a face; not a plane). :func:`check_axes` compares the median |curl| of the
+slopes of the solved normals with that of each mistake undone (:data:`MISTAKES`):
+far larger says which one the light file holds. Turned half a turn (both axes
+negated) the normals are those of the surface turned inside out, as integrable as
+the truth: that is the convex-concave ambiguity of photometric stereo, which no
+check on the normals can see; for the same reason each mistake below is told
+apart only up to half a turn.
 """
 
 from __future__ import annotations
@@ -22,12 +23,25 @@ import numpy as np
 
 from .errors import LightAxesWarning
 
-__all__ = ["MIN_CURL_PIXELS", "MIRROR_RATIO", "check_axes", "curl_medians"]
+__all__ = ["MIN_CURL_PIXELS", "MIRROR_RATIO", "MISTAKES", "check_axes", "curl_medians"]
 
-#: The solved normals' median |curl| must exceed their mirror image's by this
-#: factor for the light file to be called mirrored. DiLiGenT Ball: 0.0029
-#: against 0.0114 as given, 0.0114 against 0.0029 with y negated in its light
-#: file; Mitsuba's pots 0.55-0.6 times their mirror's; noise alone gives 1.
+#: The light-file mistakes the normals show: each the 2 x 2 matrix that undoes it
+#: on (n_x, n_y), and what to do about it.
+MISTAKES = {
+    "mirrored": (((1, 0), (0, -1)), "one axis looks mirrored: a file written with image "
+                 "rows for y (y down) needs its y values negated (or its x values, if x "
+                 "points left)"),
+    "swapped": (((0, 1), (1, 0)), "x and y look swapped (or swapped and both negated): "
+                "write x (right) first, then y (up)"),
+    "turned": (((0, -1), (1, 0)), "the lights look turned a quarter turn about the view "
+               "axis: x and y swapped and one of them negated"),
+}
+#: The solved normals' median |curl| must exceed that of a mistake undone by this
+#: factor for the light file to be said to hold it. DiLiGenT Ball: 0.0029 as
+#: given, 0.011-0.059 with each mistake undone; with its y values negated, its
+#: columns swapped or turned, the undone mistake gives 0.0029 against 0.0114-0.059
+#: for the normals as solved. Mitsuba's pots: 0.55-0.6 of the least undone one's;
+#: noise alone gives 1.
 MIRROR_RATIO = 2.0
 #: Pixels whose four neighbours are solved needed for a verdict.
 MIN_CURL_PIXELS = 500
@@ -35,8 +49,8 @@ MIN_CURL_PIXELS = 500
 MIN_NZ = 0.05
 
 
-def curl_medians(normals: np.ndarray, solved: np.ndarray) -> tuple[float, float, int]:
-    """Median |curl| of the slopes of solved normals and of their mirror image.
+def curl_medians(normals: np.ndarray, solved: np.ndarray) -> tuple[dict[str, float], int]:
+    """Median |curl| of the slopes of solved normals, as given and each mistake undone.
 
     Parameters
     ----------
@@ -46,41 +60,43 @@ def curl_medians(normals: np.ndarray, solved: np.ndarray) -> tuple[float, float,
 
     Returns
     -------
-    (float, float, int)
-        The median |dp/drow + dq/dcol| of the slopes p = dz/dx = -n_x / n_z and
-        q = dz/dy = -n_y / n_z (central differences, per pixel squared), the same
-        for the normals mirrored in y (n_y negated; in x it is the same number),
-        and the pixels counted (NaN, NaN, 0 when none).
+    (dict, int)
+        For "as given" and each of :data:`MISTAKES`, the median over the pixels
+        whose four neighbours are solved of |dp/drow + dq/dcol|, with the slopes
+        p = dz/dx = -n_x / n_z and q = dz/dy = -n_y / n_z (central differences;
+        per pixel); and the number of those pixels (the medians NaN when none).
     """
     normals = np.asarray(normals, dtype=np.float64)
     usable = np.asarray(solved, bool) & np.isfinite(normals).all(axis=-1) & \
         (normals[..., 2] > MIN_NZ)
     nz = np.where(usable, normals[..., 2], np.nan)
-    p, q = -normals[..., 0] / nz, -normals[..., 1] / nz
-    dp_drow = (p[2:, 1:-1] - p[:-2, 1:-1]) / 2.0
-    dq_dcol = (q[1:-1, 2:] - q[1:-1, :-2]) / 2.0
-    inside = np.isfinite(dp_drow) & np.isfinite(dq_dcol)
-    if not inside.any():
-        return float("nan"), float("nan"), 0
-    # z_col = p and z_row = -q (rows go down): curl = d(z_col)/drow - d(z_row)/dcol.
-    as_solved = np.median(np.abs(dp_drow + dq_dcol)[inside])
-    mirrored = np.median(np.abs(dp_drow - dq_dcol)[inside])
-    return float(as_solved), float(mirrored), int(inside.sum())
+    medians, pixels = {}, 0
+    undo = {"as given": ((1, 0), (0, 1)), **{k: v[0] for k, v in MISTAKES.items()}}
+    for name, ((a, b), (c, d)) in undo.items():
+        p = -(a * normals[..., 0] + b * normals[..., 1]) / nz
+        q = -(c * normals[..., 0] + d * normals[..., 1]) / nz
+        # z_col = p and z_row = -q (rows go down): curl = d(z_col)/drow - d(z_row)/dcol.
+        curl = np.abs(p[2:, 1:-1] - p[:-2, 1:-1] + q[1:-1, 2:] - q[1:-1, :-2]) / 2.0
+        inside = np.isfinite(curl)
+        pixels = int(inside.sum())
+        medians[name] = float(np.median(curl[inside])) if pixels else float("nan")
+    return medians, pixels
 
 
 def check_axes(normals: np.ndarray, solved: np.ndarray, light_file) -> dict:
     """report.json's record of :func:`curl_medians`, with a
     :class:`~colorps.errors.LightAxesWarning` naming ``light_file`` when the
-    solved normals are MIRROR_RATIO times less integrable than their mirror."""
-    as_solved, mirrored, pixels = curl_medians(normals, solved)
-    flagged = pixels >= MIN_CURL_PIXELS and as_solved > MIRROR_RATIO * mirrored
-    if flagged:
+    solved normals are MIRROR_RATIO times less integrable than with one of
+    :data:`MISTAKES` undone (``looks``: that mistake, else None)."""
+    medians, pixels = curl_medians(normals, solved)
+    mistake = min(MISTAKES, key=lambda name: medians[name])
+    as_given, undone = medians["as given"], medians[mistake]
+    looks = mistake if pixels >= MIN_CURL_PIXELS and as_given > MIRROR_RATIO * undone \
+        else None
+    if looks:
         warnings.warn(
-            f"{light_file}: one axis of the lights looks mirrored: the normals solved "
-            f"under them are {as_solved / mirrored:.1f} times less integrable than their "
-            "mirror image (median curl of their slopes "
-            f"{as_solved:.3g} against {mirrored:.3g}). colorps's axes are x right, y up, "
-            "z towards the camera; a file written with image rows for y (y down) needs "
-            "its y values negated", LightAxesWarning, stacklevel=2)
-    return dict(curl_median=as_solved, mirrored_curl_median=mirrored, pixels=pixels,
-                looks_mirrored=bool(flagged))
+            f"{light_file}: {MISTAKES[looks][1]}. The normals solved under these lights are "
+            f"{as_given / undone:.1f} times less integrable than with that undone (median "
+            f"curl of their slopes {as_given:.3g} against {undone:.3g}); colorps's axes are "
+            "x right, y up, z towards the camera", LightAxesWarning, stacklevel=2)
+    return dict(curl_medians=medians, pixels=pixels, looks=looks)

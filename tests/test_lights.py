@@ -152,40 +152,43 @@ def test_bad_light_files_name_the_file_at_fault(tmp_path):
         read_lights(wrong_count)
 
 
-def test_the_curl_of_a_surfaces_normals_tells_a_mirrored_axis():
-    """A sphere's normals have (next to) no curl, their mirror image in y or x
-    a large one; a mirrored axis is flagged, the truth, a surface that bends in
-    one direction only, noise and a handful of pixels are not."""
+def test_the_curl_of_a_surfaces_normals_tells_a_light_files_axes():
+    """A sphere's normals have (next to) no curl; mirrored, swapped in x and y or
+    turned a quarter turn at the same pixels they have a large one, and each
+    mistake is named; the truth, half a turn, a surface that bends along one
+    axis only, noise and a handful of pixels are not flagged."""
     from colorps.errors import LightAxesWarning
-    from colorps.light_axes import check_axes, curl_medians
+    from colorps.light_axes import MISTAKES, check_axes, curl_medians
 
     ball = synth.sphere_surface(101, 45)
     normals = np.where(ball.mask[..., None], ball.normals, np.nan)
-    as_solved, mirrored, pixels = curl_medians(normals, ball.mask)
-    assert pixels > 5000 and as_solved < 0.1 * mirrored
-    for axis in (0, 1):  # x or y mirrored: the same curl
-        flipped = normals * np.where(np.arange(3) == axis, -1.0, 1.0)
-        flipped_as_solved, flipped_mirrored, _ = curl_medians(flipped, ball.mask)
-        assert (flipped_as_solved, flipped_mirrored) == pytest.approx((mirrored, as_solved))
-        with pytest.warns(LightAxesWarning, match="lights.txt: one axis"):
-            assert check_axes(flipped, ball.mask, "lights.txt")["looks_mirrored"]
+    medians, pixels = curl_medians(normals, ball.mask)
+    assert pixels > 5000
+    assert all(medians["as given"] < 0.3 * medians[name] for name in MISTAKES)
+    assert check_axes(normals, ball.mask, "lights.txt")["looks"] is None
+    for name, (undo, _) in MISTAKES.items():
+        made = normals.copy()  # the mistake: the inverse of its undoing
+        made[..., :2] = normals[..., :2] @ np.linalg.inv(np.array(undo, float)).T
+        for turn in (1.0, -1.0):  # and half a turn more: the same verdict
+            with pytest.warns(LightAxesWarning, match="lights.txt: "):
+                record = check_axes(made * [turn, turn, 1.0], ball.mask, "lights.txt")
+            assert record["looks"] == name
     both = normals * np.array([-1.0, -1.0, 1.0])  # half a turn: inside out, integrable
-    assert not check_axes(both, ball.mask, "lights.txt")["looks_mirrored"]
-    assert not check_axes(normals, ball.mask, "lights.txt")["looks_mirrored"]
-    # A cylinder along y bends in x only: its curl tells nothing either way.
+    assert check_axes(both, ball.mask, "lights.txt")["looks"] is None
+    # A cylinder along y bends in x only: as given, it has no curl either.
     x = np.linspace(-0.9, 0.9, 80)
     tube = np.zeros((60, 80, 3))
     tube[..., 0], tube[..., 2] = x, np.sqrt(1 - x ** 2)
-    solved = np.ones((60, 80), bool)
-    record = check_axes(tube * [1, -1, 1], solved, "lights.txt")
-    assert not record["looks_mirrored"] and record["pixels"] > 4000
+    record = check_axes(tube * [1, -1, 1], np.ones((60, 80), bool), "lights.txt")
+    assert record["looks"] is None and record["pixels"] > 4000
     rng = np.random.default_rng(0)
     noise = rng.normal(size=(80, 80, 3)) * [0.2, 0.2, 0] + [0, 0, 1]
     noise /= np.linalg.norm(noise, axis=-1, keepdims=True)
-    assert not check_axes(noise, np.ones((80, 80), bool), "lights.txt")["looks_mirrored"]
+    assert check_axes(noise, np.ones((80, 80), bool), "lights.txt")["looks"] is None
     few = np.zeros_like(ball.mask)
     few[45:55, 30:40] = True
-    assert check_axes(normals * [1, -1, 1], few & ball.mask, "l.txt")["pixels"] < 500
+    record = check_axes(normals * [1, -1, 1], few & ball.mask, "l.txt")
+    assert record["pixels"] < 500 and record["looks"] is None
 
 
 def test_a_light_file_with_y_down_is_said_to_look_mirrored(tmp_path, capsys):
@@ -204,7 +207,7 @@ def test_a_light_file_with_y_down_is_said_to_look_mirrored(tmp_path, capsys):
         assert main(["reconstruct", "--scene", str(data / "scene_*.exr"), "--lights",
                      str(data / name), "--mask", str(data / "mask.png"), "--out", str(out),
                      "--quiet", "--no-height", "--no-viewer"]) == 0
-        said[name] = ("one axis of the lights looks mirrored" in capsys.readouterr().err,
+        said[name] = ("one axis looks mirrored" in capsys.readouterr().err,
                       json.loads((out / "report.json").read_text())["lights_check"]["axes"])
-    assert said["lights.txt"][0] is False and not said["lights.txt"][1]["looks_mirrored"]
-    assert said["y_down.txt"][0] is True and said["y_down.txt"][1]["looks_mirrored"]
+    assert said["lights.txt"][0] is False and said["lights.txt"][1]["looks"] is None
+    assert said["y_down.txt"][0] is True and said["y_down.txt"][1]["looks"] == "mirrored"
