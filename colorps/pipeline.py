@@ -81,6 +81,7 @@ from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_ow
 
 __all__ = ["reconstruct_files"]
 
+
 def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = None,
                       overwrite: bool = False, progress: bool = True,
                       scheduler=None) -> Reconstruction:
