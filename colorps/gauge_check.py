@@ -325,7 +325,9 @@ def finish_differs(model_scale: float, record: dict) -> bool:
     """A gauge-mode run that looks like a scene of another finish than its matte
     gauge's (FINISH_HINT_SCALE, MATTE_FIT); ``record`` is :func:`check_gauge`'s,
     with the scene's ``scene_noise_over_gauge`` once :func:`noisier_scene` measured
-    it (NOISIER_SCENE)."""
+    it (NOISIER_SCENE), and not when its images look out of step with the gauge's."""
+    if record.get("pairing", {}).get("looks_out_of_step"):
+        return False  # images and gauge out of step: not a finish to fit
     fit = record.get("sphere_fit_residual")
     noisier = record.get("scene_noise_over_gauge") or 1.0
     if noisier >= NOISIER_SCENE:

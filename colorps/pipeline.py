@@ -71,7 +71,14 @@ from .outputs import (
     prepare_output_dir,
     save_reconstruction,
 )
-from .pairing import check_natural_order, pair_lights, pairing_record
+from .pairing import (
+    check_natural_order,
+    check_shading_pairing,
+    light_subspaces,
+    pair_lights,
+    pairing_record,
+    shading_subspaces,
+)
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock, check_solved
@@ -337,6 +344,9 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
                                    encoding, top_code(stacks.scene_infos[0]))
             if checked["decoded_as"]:
                 scene, run = _read_as_linear(scene, stacks, run)
+            checked["pairing"] = check_shading_pairing(
+                scene, mask, light_subspaces(stacks.light_set, scene.shape[-1]),
+                inputs.lights, "the light file")
         gauge, run, brdf, fits = virtual_gauge(scene, stacks.light_set, run, mask=mask,
                                                radius=inputs.virtual_radius,
                                                progress=progress, camera=inputs.camera)
@@ -362,6 +372,10 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
         gauge_stack = as_linear(gauge_stack, stacks.gauge_paths, stacks.gauge_infos[0], "gauge")
         gauge = photographed(gauge_stack)
         scene, run = _read_as_linear(scene, stacks, run)
+    if isinstance(scene, np.ndarray):  # (a tiled run's scene stays in its files)
+        checked["pairing"] = check_shading_pairing(
+            scene, mask, shading_subspaces(gauge_stack, gauge.mask)[0], stacks.gauge_paths[0],
+            "the gauge")
     return gauge, gauge_stack, run, None, checked, scene
 
 

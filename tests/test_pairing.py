@@ -99,3 +99,64 @@ def test_intensities_of_the_wrong_band_count_name_their_file(capture, tmp_path, 
     err = capsys.readouterr().err
     assert "intensities.txt: the intensities have 2 values per light" in err
     assert "3 channel(s)" in err and not out.exists()
+
+
+def test_shading_subspaces_tell_images_and_lights_out_of_step():
+    """A scene and a gauge under the same 8 lights span the same shading subspace,
+    as do the lights themselves; the gauge's images or the lights out of step
+    (two swapped, all shuffled) are seen and said; 3 images, or no pixel lit in
+    every image, give no verdict."""
+    from colorps.errors import PairingWarning
+    from colorps.pairing import (
+        MAX_PAIRING_ANGLE,
+        check_shading_pairing,
+        light_subspaces,
+        shading_subspaces,
+    )
+    from colorps.shapes import dome_lights
+
+    lighting = dome_lights(8, 40.0)
+    lights = Lights(lighting.directions[:, 0], lighting.colours[:, 0])
+    scene = synth.smiley_surface(64)
+    stack = synth.render(scene, lighting)
+    ball = synth.sphere_surface(81, 38)
+    gauge = synth.render(ball, lighting)
+    reference, pixels = shading_subspaces(gauge, ball.mask)
+    assert pixels > 1000 and len(reference) == 3
+    for theirs, what in ((reference, "the gauge"), (light_subspaces(lights, 3), "lights")):
+        record = check_shading_pairing(stack, scene.mask, theirs, "g.exr", what)
+        assert max(record["angle_deg"]) < 1.0 and not record["looks_out_of_step"]
+    rng = np.random.default_rng(1)
+    for order in ([1, 0, 2, 3, 4, 5, 6, 7], rng.permutation(8)):
+        for theirs in (shading_subspaces(gauge[order], ball.mask)[0],
+                       light_subspaces(Lights(lights.directions[order],
+                                              lights.intensities[order]), 3)):
+            with pytest.warns(PairingWarning, match="g.exr: the scene's images do not look"):
+                record = check_shading_pairing(stack, scene.mask, theirs, "g.exr", "it")
+            assert min(record["angle_deg"]) > MAX_PAIRING_ANGLE and record["looks_out_of_step"]
+    assert "skipped" in check_shading_pairing(stack[:3], scene.mask, reference[:3], "g", "it")
+    dark = stack.copy()
+    dark[0] = 0.0  # no pixel lit in every image
+    assert "skipped" in check_shading_pairing(dark, scene.mask, reference, "g", "it")
+
+
+def test_gauge_images_out_of_step_are_said_not_fitted_as_a_finish(tmp_path, capsys):
+    """Through the command line: the bundled sample with two gauge images swapped
+    solves, says the images look out of step with the gauge's, records it, and
+    does not take the misfit for another finish."""
+    import shutil
+
+    from colorps.sample import sample_folder
+
+    folder = sample_folder()
+    for k, source in enumerate([1, 0, 2, 3, 4, 5, 6, 7]):
+        shutil.copy(folder / f"gauge_{source:02d}.exr", tmp_path / f"gauge_{k:02d}.exr")
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--scene", str(folder / "scene_*.exr"), "--gauge",
+                 str(tmp_path / "gauge_*.exr"), "--sphere", "auto", "--mask",
+                 str(folder / "mask.png"), "--out", str(out), "--quiet", "--no-height",
+                 "--no-viewer"]) == 0
+    err = capsys.readouterr().err
+    assert "gauge_00.exr: the scene's images do not look lit by the gauge" in err
+    check = json.loads((out / "report.json").read_text())["gauge_check"]
+    assert check["pairing"]["looks_out_of_step"] and "finish" not in check
