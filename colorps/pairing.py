@@ -55,9 +55,12 @@ MAX_PAIRING_ANGLE = 20.0
 #: and may be clipped from UNCLIPPED_FRACTION of it up.
 LIT_FRACTION = 0.02
 UNCLIPPED_FRACTION = 0.98
-#: Pixels lit in every image needed for a verdict, and the most used (a sample).
+#: Pixels lit in every image needed for a verdict, and the most used (a sample),
+#: looked for among at most CANDIDATE_PIXELS of the mask (a fixed sample: a
+#: 96-image megapixel stack is not copied band by band).
 MIN_LIT_PIXELS = 100
 LIT_SAMPLE = 20_000
+CANDIDATE_PIXELS = 4 * LIT_SAMPLE
 #: The subspace is fitted again on this share of the pixels it fits best, twice
 #: (highlights, shadow edges and bounced light leave it).
 KEEP_SHARE = 0.8
@@ -156,17 +159,19 @@ def _stem(name) -> str:
 def shading_subspaces(stack: np.ndarray, mask: np.ndarray | None = None
                       ) -> tuple[list[np.ndarray], int]:
     """Per band, an orthonormal (m, 3) basis of the span of the pixels lit and not
-    clipped in every image (each pixel's m values scaled to unit length; the basis fitted again on
-    the KEEP_SHARE it fits best, TRIM_ROUNDS times), and the fewest such pixels of
-    a band (no basis when under MIN_LIT_PIXELS: an empty list)."""
-    m, _h, _w, bands = stack.shape
-    chosen = None if mask is None else np.asarray(mask, bool).reshape(-1)
+    clipped in every image (each pixel's m values scaled to unit length; the basis
+    fitted again on the KEEP_SHARE it fits best, TRIM_ROUNDS times), and the fewest
+    such pixels of a band (no basis when under MIN_LIT_PIXELS: an empty list)."""
+    _m, _h, width, bands = stack.shape
+    chosen = np.flatnonzero(np.ones(stack.shape[1:3], bool) if mask is None
+                            else np.asarray(mask, bool))
     rng = np.random.default_rng(0)
+    if len(chosen) > CANDIDATE_PIXELS:
+        chosen = np.sort(rng.choice(chosen, CANDIDATE_PIXELS, replace=False))
+    rows, cols = np.divmod(chosen, width)
     bases, fewest = [], None
     for b in range(bands):
-        values = stack[..., b].reshape(m, -1)
-        if chosen is not None:
-            values = values[:, chosen]
+        values = stack[:, rows, cols, b]  # (m, pixels)
         top = np.nanmax(values)  # lit, and not clipped, in every image
         lit = np.isfinite(values).all(axis=0) & (values > LIT_FRACTION * top).all(axis=0)
         lit &= (values < UNCLIPPED_FRACTION * top).all(axis=0)

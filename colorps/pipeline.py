@@ -381,7 +381,8 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
 
 def _with_axes(checked: dict | None, result: Reconstruction, inputs: CaptureFiles):
     """The lights check of a run with a light file, with whether its axes look
-    mirrored (:func:`light_axes.check_axes`, on the first solve's normals)."""
+    mirrored, swapped or turned (:func:`light_axes.check_axes`, on the first solve's
+    normals)."""
     if inputs.lights is None:
         return checked
     return {**(checked or {}), "axes": check_axes(result.normals, result.solved, inputs.lights)}
