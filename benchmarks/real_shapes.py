@@ -66,7 +66,7 @@ from colorps.memory import kept_grids_mib
 from colorps.resolve import StackModel, resolve
 from colorps.shapes import dome_lights, folds_surface
 from colorps.tables import GaugeTables
-from colorps.virtual import virtual_gauge, with_own_finish
+from colorps.virtual import corrected, match_along_rays, virtual_gauge, with_own_finish
 
 NOISE = 0.003
 #: Roughness of the glossy sets' GGX coat (a renderer's roughness 0.55).
@@ -167,11 +167,23 @@ def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask):
 
 
 def run_virtual(stack, lights: Lights, mask, settings=None):
-    gauge, run, _, _ = virtual_gauge(stack, lights, settings or Options(), mask=mask)
-    result, corrected = solved_as_colorps_does(stack, gauge.stack, gauge, run, mask)
-    if corrected is None:
+    """Virtual mode as ``colorps reconstruct --lights`` runs it: the finish fitted,
+    matched (again, corrected, where the finish asks for it), the bounced light
+    taken out of the scene as that match saw it, the finish fitted again."""
+    gauge, run, brdf, _ = virtual_gauge(stack, lights, settings or Options(), mask=mask)
+    first, _ = match_along_rays(stack.copy(), gauge, run, lights, brdf, None, mask=mask)
+    tables = GaugeTables(kept_grids_mib("auto", stack.shape))
+
+    def solve(images, pixels=None, model_scale=None):
+        return reconstruct(images, gauge.stack, gauge, run, model_scale=model_scale,
+                           mask=mask if pixels is None else pixels, tables=tables)
+
+    result, corrected_stack, _ = without_interreflections(
+        lambda: corrected(stack.copy(), first, lights, brdf, None, run), first, solve, gauge,
+        gauge.stack)
+    if corrected_stack is None:
         return result
-    return with_own_finish(corrected, lights, run, mask=mask)[0]  # fitted again without it
+    return with_own_finish(corrected_stack, lights, run, mask=mask)[0]  # fitted again
 
 
 def coverage(result, truth, mask) -> float:

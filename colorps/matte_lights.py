@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .brdf import ROUGHNESS_GRID, refined_roughness
+from .brdf_fit import ROUGHNESS_GRID, refined_roughness
 from .camera import Camera
 from .errors import InputError
 from .finishes import oren_nayar_factor

@@ -84,7 +84,14 @@ from .resolve import Resolved, StackModel, resolve
 from .results import Reconstruction, RunClock, check_solved
 from .tables import GaugeTables
 from .tiles import StackFiles, dask_client, reconstruct_tiled
-from .virtual import match_along_rays, virtual_gauge, with_gauge_lights, with_own_finish
+from .virtual import (
+    corrected,
+    match_along_rays,
+    matched_again,
+    virtual_gauge,
+    with_gauge_lights,
+    with_own_finish,
+)
 
 __all__ = ["reconstruct_files"]
 
@@ -162,6 +169,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                                                                        mask, progress)
         clock.start("reconstruct")
         along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
+        view = (stacks.light_set, virtual, inputs.camera) if along_rays else None
         tables = GaugeTables(0)  # the gauge's side for every untiled solve (its grids: below)
         if plan.rows is not None:
             with dask_client(scheduler) as client:
@@ -172,19 +180,18 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         else:
             handed = [scene]
             del scene  # held by ``handed`` alone, so that the reconstruction can free it
-            result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, along_rays,
-                                                 (stacks.light_set, virtual, inputs.camera),
+            result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, view,
                                                  progress, tables)
         check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
         checked = _with_axes(checked, result, inputs)
         result, solved_from, bounced, moved = _without_interreflections(
-            result, stacks, gauge_stack, gauge, run, mask, plan, along_rays, progress, tables)
+            result, stacks, gauge_stack, gauge, run, mask, plan, view, progress, tables)
         del tables  # (its grids)
         corrected = result
         if virtual is not None and solved_from is not None:  # its finish fitted again
-            result, run, virtual = with_own_finish(
+            result, run, virtual = with_own_finish(  # (seen along the axis if along_rays)
                 solved_from, stacks.light_set, run, mask=mask, radius=inputs.virtual_radius,
-                camera=inputs.camera, progress=progress)
+                camera=None if along_rays else inputs.camera, progress=progress)
         if inputs.lights is None and run.options.finish_check and \
                 finish_differs(result.stats.model_scale, checked):
             if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
@@ -302,19 +309,18 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
                              warn_lossy=False)[1]
 
 
-def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, mask,
-                       along_rays: bool, view, progress: bool,
-                       tables: GaugeTables) -> tuple[Reconstruction, np.ndarray]:
+def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, mask, view,
+                       progress: bool, tables: GaugeTables) -> tuple[Reconstruction, np.ndarray]:
     """Reconstruct the scene stack ``handed`` holds (its only reference) untiled;
     the result and the overview's preview of the scene.
 
-    Without ``along_rays`` the stack goes to :func:`reconstruct` as its only
+    Without ``view`` the stack goes to :func:`reconstruct` as its only
     reference, which lets it go once it has the observation vectors. With it
-    (``view``: the light file's lights, the virtual gauge's finish and fits,
-    the camera) the scene is matched once more, seen along each pixel's ray
-    (:func:`virtual.match_along_rays`)."""
+    (the light file's lights, the virtual gauge's finish and fits, the camera:
+    a finish that has the scene matched again) the scene is matched once more,
+    corrected (:func:`virtual.match_along_rays`)."""
     step = overview_step(handed[0].shape[1:3])
-    if not along_rays:
+    if view is None:
         preview = handed[0][:, ::step, ::step].mean(axis=0)  # what the overview draws
         return reconstruct(handed.pop(), gauge_stack, gauge, run, mask=mask,
                            progress=progress, tables=tables), preview
@@ -324,9 +330,15 @@ def _reconstruct_whole(handed: list, gauge_stack, gauge: Gauge, run: Resolved, m
     return result, scene[:, ::step, ::step].mean(axis=0)
 
 
+#: Why a run matched again under its finish keeps the light it bounces onto itself.
+_MATCHED_AGAIN = "a run matched again under its finish (its white highlight out, or along " \
+    "the camera's rays)"
+
+
 def _view_matters(inputs: CaptureFiles, virtual) -> bool:
-    """A virtual gauge whose fitted finish depends on the view, seen through a lens."""
-    return inputs.camera is not None and virtual is not None and virtual[0].depends_on_view
+    """A virtual gauge whose fitted finish has the scene matched again
+    (:func:`virtual.matched_again`)."""
+    return virtual is not None and matched_again(virtual[0], inputs.camera)
 
 
 def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mask,
@@ -457,28 +469,36 @@ def _save(result: Reconstruction, out, options: Options, plan: TilePlan, report:
 
 
 def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge,
-                              run: Resolved, mask, plan: TilePlan, along_rays: bool,
-                              progress: bool, tables: GaugeTables):
+                              run: Resolved, mask, plan: TilePlan, view, progress: bool,
+                              tables: GaugeTables):
     """The result solved again without the light a concave object bounces onto itself
     (:func:`interreflection.without_interreflections`, the scene read again only
     then), the measurements it was solved from (None: as read), report.json's record,
     and how far taking it out moved each normal (:func:`interreflection.moved_by`;
-    None: not taken out), for a result solved again from those measurements."""
+    None: not taken out), for a result solved again from those measurements.
+    ``view``: None, or (lights, finish and fits, camera) of a run matched again
+    under its finish (:func:`virtual.matched_again`), whose scene is read as
+    that match saw it (:func:`virtual.corrected`, at ``result``'s normals)."""
     if not run.options.interreflections:
         return result, None, dict(skipped="--no-interreflections"), None
-    if plan.rows is not None or along_rays:
-        tiled = plan.rows is not None
+    if plan.rows is not None:
         return result, None, _left_in(
-            result, "a tiled run" if tiled else "a run matched along the camera's rays",
-            " (untiled, without --tile and with enough --memory-limit, that light is taken "
-            "out)" if tiled else ""), None
+            result, "a tiled run", " (untiled, without --tile and with enough "
+            "--memory-limit, that light is taken out)"), None
     tables.resize(kept_grids_mib(run.options.memory_limit_gib, stacks.shape))  # many solves
-    corrected, solved_from, record = without_interreflections(
-        lambda: _read_scene(stacks, run.options, plan, progress, True)[0], result,
-        _solve_with(gauge_stack, gauge, run, mask, progress, tables), gauge, gauge_stack,
-        progress=progress)
-    return corrected, solved_from, record, \
-        None if solved_from is None else moved_by(corrected, result)
+
+    def read_scene():
+        scene = _read_scene(stacks, run.options, plan, progress, True)[0]
+        if view is None:
+            return scene
+        lights, virtual, camera = view
+        return corrected(scene, result, lights, virtual[0], camera, run)
+
+    corrected_result, solved_from, record = without_interreflections(
+        read_scene, result, _solve_with(gauge_stack, gauge, run, mask, progress, tables), gauge,
+        gauge_stack, progress=progress)
+    return corrected_result, solved_from, record, \
+        None if solved_from is None else moved_by(corrected_result, result)
 
 
 def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool,
@@ -538,8 +558,8 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
     (``read_scene()``), the finish fitted again (:func:`virtual.with_own_finish`);
     kept when it explains the scene at least as well. Returns (result, settings,
     finish and its fits); its record is ``bounced``'s ``with_scene_finish``."""
-    if inputs.camera is not None and finish[0].depends_on_view:
-        bounced["with_scene_finish"] = dict(skipped="matched along the camera's rays")
+    if _view_matters(inputs, finish):
+        bounced["with_scene_finish"] = dict(skipped=_MATCHED_AGAIN)
         return result, run, finish
     virtual = Gauge.virtual(lights, radius=inputs.virtual_radius, bands=result.albedo.shape[-1],
                             brdf=finish[0])

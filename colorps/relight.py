@@ -61,15 +61,16 @@ def relight(normals, albedo, direction, intensity=1.0, brdf: BRDF | None = None
     light = np.asarray(direction, dtype=np.float64)
     light = light / np.linalg.norm(light)
     n = np.asarray(normals, dtype=np.float32)
+    albedo = np.asarray(albedo, dtype=np.float32)
     if brdf is None or brdf.is_lambert:
-        shading = np.maximum(n @ light.astype(np.float32), 0.0)[..., None]
-    else:
-        c = np.shape(albedo)[-1]
-        solved = np.isfinite(n).all(axis=-1)
-        shading = np.zeros((*n.shape[:2], c), dtype=np.float32)
-        shading[solved] = brdf.shade(n[solved], light[None], np.ones((1, c)))[0]
-    image = np.asarray(albedo, dtype=np.float32) * shading * \
-        np.asarray(intensity, dtype=np.float32)
+        image = albedo * np.maximum(n @ light.astype(np.float32), 0.0)[..., None]
+    else:  # (a white highlight does not scale with the albedo)
+        c = albedo.shape[-1]
+        solved = np.isfinite(n).all(axis=-1) & np.isfinite(albedo).all(axis=-1)
+        image = np.zeros((*n.shape[:2], c), dtype=np.float32)
+        image[solved] = brdf.shade(n[solved], light[None], np.ones((1, c)),
+                                   albedo=albedo[solved].astype(np.float64))[0]
+    image = image * np.asarray(intensity, dtype=np.float32)
     return np.where(np.isfinite(image), image, np.float32(0.0)).astype(np.float32)
 
 

@@ -234,7 +234,7 @@ def test_a_view_dependent_finish_is_matched_along_each_pixels_ray():
     lighting = synth.ring_lights(12, 40.0)
     lights = Lights(lighting.directions[:, 0], lighting.colours[:, 0])
     scene = synth.smiley_surface(80)
-    brdf = BRDF(specular=(0.3,), shininess=20.0)  # a broad highlight: many lights
+    brdf = BRDF(specular=(0.3,), alpha=0.3)  # a broad highlight: many lights
     camera = Camera(150.0, 150.0)
     ys, xs = np.nonzero(scene.mask)
     views = -camera.rays(xs, ys, scene.mask.shape)

@@ -149,18 +149,21 @@ def test_relight_refuses_a_folder_without_results(tmp_path, capsys):
     assert not (tmp_path / "r").exists()
 
 
-def test_relight_with_the_fitted_finish(results, tmp_path):
-    """--finish fitted shades with report.json's brdf: a diffuse falloff and a
-    Blinn-Phong highlight (view along +z), as the model states it."""
+@pytest.mark.parametrize("white", [False, True])
+def test_relight_with_the_fitted_finish(results, tmp_path, white):
+    """--finish fitted shades with report.json's brdf: a diffuse falloff and a GGX
+    highlight (view along +z; the renderer's coat of colorps.finishes), tinted by
+    the albedo or white, as the model states it."""
     import shutil
 
-    from colorps.brdf import BRDF, DIFFUSE_KNOTS
+    from colorps.brdf import BRDF, DIFFUSE_KNOTS, FRESNEL_F0
+    from colorps.finishes import Gloss, gloss_shape
 
     folder = tmp_path / "glossy"
     shutil.copytree(results["opengl"], folder)
     report = json.loads((folder / "report.json").read_text())
     falloff = (1.0, 0.9, 0.9, 0.95, 1.0, 1.0, 1.0, 1.0)
-    report["brdf"] = BRDF(falloff, (0.3,), 40.0).as_dict()
+    report["brdf"] = BRDF(falloff, (0.3,), 0.2, white_highlight=white).as_dict()
     (folder / "report.json").write_text(json.dumps(report))
     lights = tmp_path / "lights.txt"
     light = np.array([0.5, 0.3, 0.81])
@@ -174,11 +177,11 @@ def test_relight_with_the_fitted_finish(results, tmp_path):
     solved = np.isfinite(normals).all(axis=-1)
     n = normals[solved].astype(np.float64)
     cosine = np.maximum(n @ light, 0.0)
-    half = (light + [0, 0, 1]) / np.linalg.norm(light + [0, 0, 1])
-    shading = cosine * np.interp(cosine, DIFFUSE_KNOTS, falloff) + \
-        0.3 * 42.0 / 2 * np.clip(n @ half, 0, 1) ** 40 * cosine
-    np.testing.assert_allclose(image[solved], albedo[solved] * shading[:, None], atol=2e-3,
-                               rtol=1e-3)
+    diffuse = cosine * np.interp(cosine, DIFFUSE_KNOTS, falloff)
+    highlight = 0.3 * gloss_shape(n, light, Gloss(FRESNEL_F0, "ggx", alpha=0.2)) / FRESNEL_F0
+    expected = albedo[solved] * diffuse[:, None] + \
+        highlight[:, None] * (1.0 if white else albedo[solved])
+    np.testing.assert_allclose(image[solved], expected, atol=2e-3, rtol=1e-3)
     # A folder whose run fitted no finish says so.
     assert main(["relight", str(results["opengl"]), "--lights", str(lights), "--out",
                  str(tmp_path / "none"), "--finish", "fitted"]) == 1

@@ -280,7 +280,7 @@ def test_page_relights_with_the_fitted_finish(browser, results, tmp_path):
     the checkbox turns it off again."""
     from colorps.brdf import BRDF
 
-    finish = BRDF((1.0, 0.9, 0.9, 0.95, 1.0, 1.0, 1.0, 1.0), (0.3,), 40.0, roughness=0.3)
+    finish = BRDF((1.0, 0.9, 0.9, 0.95, 1.0, 1.0, 1.0, 1.0), (0.3,), 0.2, roughness=0.3)
     folder = tmp_path / "glossy"
     shutil.copytree(results, folder)
     write_viewer(_loaded_result(results), folder, finish=finish.as_dict())
