@@ -466,10 +466,8 @@ def view_corrected(scene: np.ndarray, result, lights: Lights, brdf: BRDF, camera
         ``scene``.
     """
     _m, height, width, c = scene.shape
-    ys, xs = np.nonzero(result.solved)
     intensities = lights.as_lighting(c).colours[:, 0, :]
-    for first in range(0, len(ys), VIEW_CHUNK):
-        y, x = ys[first:first + VIEW_CHUNK], xs[first:first + VIEW_CHUNK]
+    for y, x in _solved_chunks(result):
         normals = result.normals[y, x].astype(np.float64)
         views = -camera.rays(x, y, (height, width))
         change = brdf.shade(normals, lights.directions, intensities) - \
@@ -520,11 +518,9 @@ def without_highlight(scene: np.ndarray, result, lights: Lights, brdf: BRDF,
         ``scene``.
     """
     _m, height, width, c = scene.shape
-    ys, xs = np.nonzero(result.solved)
     intensities = lights.as_lighting(c).colours[:, 0, :]
     specular = brdf.bands(c)
-    for first in range(0, len(ys), VIEW_CHUNK):
-        y, x = ys[first:first + VIEW_CHUNK], xs[first:first + VIEW_CHUNK]
+    for y, x in _solved_chunks(result):
         views = None if camera is None else -camera.rays(x, y, (height, width))
         values = scene[:, y, x, :]
         normals = result.normals[y, x].astype(np.float64)
@@ -547,3 +543,10 @@ def without_highlight(scene: np.ndarray, result, lights: Lights, brdf: BRDF,
             corrected = np.where(values >= clip_level, values, corrected)
         scene[:, y, x, :] = corrected
     return scene
+
+
+def _solved_chunks(result):
+    """(rows, columns) of ``result``'s solved pixels, VIEW_CHUNK at a time."""
+    ys, xs = np.nonzero(result.solved)
+    for first in range(0, len(ys), VIEW_CHUNK):
+        yield ys[first:first + VIEW_CHUNK], xs[first:first + VIEW_CHUNK]
