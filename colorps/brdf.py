@@ -29,7 +29,7 @@ Schlick's Fresnel of a dielectric, over 4 (n . v)), of strength h_b per band:
 A white highlight on a textured object is a different share of each pixel's
 light in each band, which one table of signatures cannot hold: its scenes are
 matched against the diffuse part alone once their highlight is taken out
-(:func:`colorps.virtual.match_finish`).
+(:func:`colorps.virtual.without_highlight`).
 
 :func:`best_normals` finds the normals that explain given observations best
 under a finish (the albedos projected out), and :mod:`colorps.brdf_fit` fits
@@ -239,8 +239,9 @@ def _half_vectors(directions: np.ndarray) -> np.ndarray:
     return half / np.linalg.norm(half, axis=1, keepdims=True)
 
 
-def shading_angles(normals: np.ndarray, directions: np.ndarray, views: np.ndarray | None = None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def shading_angles(normals: np.ndarray, directions: np.ndarray,
+                   views: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Cosines of incidence (m, N; 0 when unlit), of the half vector's angle to
     the normal (m, N), of the view's (N,) and of the half vector's to the light
     ((m, 1), or (m, N) with ``views``), for a view along +z or each point's
@@ -268,7 +269,8 @@ def ggx_lobe(angles: tuple, alpha: float) -> np.ndarray:
 
     That is pi times the radiance of the BRDF D F G / (4 (n . l)(n . v)) under a
     light of unit irradiance at normal incidence (the pi makes it comparable
-    with the diffuse term: a Lambertian BRDF a / pi gives a (n . l)), with the GGX (Trowbridge-Reitz) distribution D of roughness
+    with the diffuse term: a Lambertian BRDF a / pi gives a (n . l)), with the
+    GGX (Trowbridge-Reitz) distribution D of roughness
     ``alpha``, Smith's separable shadowing G and Schlick's Fresnel factor F of
     reflectance FRESNEL_F0, relative to it. At normal incidence it peaks at
     1 / (4 alpha^2). ``angles`` is :func:`shading_angles`'s.

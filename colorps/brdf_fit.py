@@ -138,7 +138,9 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     falloff fitted at normals of another finish's match takes up their error,
     and the joint rounds then stay near them. With ``settle_rounds`` the first
     rounds hold g at Lambert's (g = 1), fitting the roughness and the highlight
-    alone, while the normals settle; the rest free it.
+    alone, while the normals settle; the rest free it. The first round fits a
+    highlight tinted by the albedo and a white one (alpha up to
+    WHITE_MAX_ALPHA), and the rounds after it keep the one of lower cost.
 
     Parameters
     ----------

@@ -104,7 +104,6 @@ FIT_MATCH_PIXELS = 40_000
 VIEW_CHUNK = 2 ** 15
 
 
-
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
                   mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, progress: bool = False,
                   camera: Camera | None = None
@@ -202,11 +201,11 @@ def match_along_rays(scene: np.ndarray, gauge: Gauge, run: Resolved, lights: Lig
     if not matched_again(brdf, camera):
         return result, scene
     if progress:
-        along = "each pixel seen along its own ray" if camera is not None else ""
-        print("matching again, " + (f"the white highlight taken out{along and ', '}{along}"
-                                    if brdf.has_white_highlight else
-                                    f"{along} (--camera and a finish that depends on the "
-                                    "view)"), file=sys.stderr)
+        along = "each pixel seen along its own ray"
+        why = (f"the white highlight taken out{', ' + along if camera is not None else ''}"
+               if brdf.has_white_highlight else
+               f"{along} (--camera and a finish that depends on the view)")
+        print(f"matching again, {why}", file=sys.stderr)
     scene = corrected(scene, result, lights, brdf, camera, run)
     return reconstruct(scene, gauge.stack, gauge, run, mask=mask, progress=progress), scene
 
@@ -252,8 +251,9 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
     mask's pixels at most, a fixed random sample). The fit is kept only when the
     scene matches the gauge rendered with it better (lower median residual in
     noise units, before the run's model scale, TIED_RESIDUALS counting as a
-    tie) than the Lambertian one (the last round's ``kept``); otherwise the result is Lambert, as it is with fewer
-    than MIN_FIT_IMAGES images (with a warning). A kept fit is then matched with
+    tie) than the Lambertian one (the last round's ``kept``); otherwise the
+    result is Lambert, as it is with fewer than MIN_FIT_IMAGES images (with a
+    warning). A kept fit is then matched with
     the simpler finishes of :data:`SIMPLER_GAIN`, one of which replaces it where
     clearly better (the last round's ``candidates``: what each matched). The
     plain Oren-Nayar ones are the fit's roughness and the grid's values on
@@ -321,7 +321,9 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
             if progress:
                 print(f"brdf fit {round_ + 1}/{fits}: {record['pixels']} pixels, RMS relative "
                       f"residual {record['rms_relative']:.4f}, highlight "
-                      f"{max(brdf.specular):.4f} ({'white' if brdf.white_highlight else 'tinted'}), alpha {brdf.alpha:.3f}, roughness "
+                      f"{max(brdf.specular):.4f} "
+                      f"({'white' if brdf.white_highlight else 'tinted'}), alpha "
+                      f"{brdf.alpha:.3f}, roughness "
                       f"{brdf.roughness:.1f} rad (the scene matched the gauge before it at "
                       f"{record['match_residual_median']:.2f} noise units)", file=sys.stderr)
         start, fitted = history[0]["match_residual_median"], history[-1]["match_residual_median"]
