@@ -149,21 +149,24 @@ def least_squares(stack, directions, mask) -> np.ndarray:
     return normals
 
 
-def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask):
-    """``reconstruct``, then the light a concave object bounces onto itself taken
-    out (:func:`colorps.interreflection.without_interreflections`), as
-    ``colorps reconstruct`` does by default (the gauge's side shared by every
-    solve, its grids by the passes): the result and the measurements it was
-    solved from (None: ``stack``)."""
+def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask, first=None,
+                           read_scene=None):
+    """``reconstruct`` (or ``first``, a solve already made), then the light a concave
+    object bounces onto itself taken out
+    (:func:`colorps.interreflection.without_interreflections`, from the scene as
+    ``read_scene()`` gives it, ``stack`` by default), as ``colorps reconstruct``
+    does by default (the gauge's side shared by every solve, its grids by the
+    passes): the result and the measurements it was solved from (None: ``stack``)."""
     tables = GaugeTables(0)
 
     def solve(images, pixels=None, model_scale=None):
         return reconstruct(images, gauge_stack, gauge, settings, model_scale=model_scale,
                            mask=mask if pixels is None else pixels, tables=tables)
 
-    first = solve(stack)
+    first = solve(stack) if first is None else first
     tables.resize(kept_grids_mib("auto", stack.shape))
-    return without_interreflections(lambda: stack, first, solve, gauge, gauge_stack)[:2]
+    return without_interreflections(read_scene or (lambda: stack), first, solve, gauge,
+                                    gauge_stack)[:2]
 
 
 def run_virtual(stack, lights: Lights, mask, settings=None):
@@ -172,15 +175,9 @@ def run_virtual(stack, lights: Lights, mask, settings=None):
     taken out of the scene as that match saw it, the finish fitted again."""
     gauge, run, brdf, _ = virtual_gauge(stack, lights, settings or Options(), mask=mask)
     first, _ = match_along_rays(stack.copy(), gauge, run, lights, brdf, None, mask=mask)
-    tables = GaugeTables(kept_grids_mib("auto", stack.shape))
-
-    def solve(images, pixels=None, model_scale=None):
-        return reconstruct(images, gauge.stack, gauge, run, model_scale=model_scale,
-                           mask=mask if pixels is None else pixels, tables=tables)
-
-    result, corrected_stack, _ = without_interreflections(
-        lambda: corrected(stack.copy(), first, lights, brdf, None, run), first, solve, gauge,
-        gauge.stack)
+    result, corrected_stack = solved_as_colorps_does(
+        stack, gauge.stack, gauge, run, mask, first,
+        lambda: corrected(stack.copy(), first, lights, brdf, None, run))
     if corrected_stack is None:
         return result
     return with_own_finish(corrected_stack, lights, run, mask=mask)[0]  # fitted again

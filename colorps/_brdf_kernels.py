@@ -169,13 +169,14 @@ def huber_normal_equations(obs, weight, robust, basis, lobe, falloff, specular, 
                     robust[i, p, b] = r
                     wr = w * r
                     total += wr
+                    target = obs[i, p, b] - basis[i, p, k - 1] * a  # the fixed knot's out
                     a2w = a * a * wr
-                    awt = a * wr * (obs[i, p, b] - basis[i, p, k - 1] * a)
+                    awt = a * wr * target
                     a2w_sum += a2w
                     awt_sum += awt
                     tl = tint * l_ip
                     part[k - 1 + b, k - 1 + b] += tl * tl * wr
-                    part_right[k - 1 + b] += tl * wr * (obs[i, p, b] - basis[i, p, k - 1] * a)
+                    part_right[k - 1 + b] += tl * wr * target
                     for j in range(j0, pair):
                         part[j, k - 1 + b] += basis[i, p, j] * a * tl * wr
                 for j in range(j0, pair):

@@ -17,7 +17,8 @@ from .brdf import BRDF, DIFFUSE_KNOTS, best_normals, ggx_lobe, shading_angles
 from .errors import InputError
 from .finishes import oren_nayar_factor
 
-__all__ = ["ALPHA_GRID", "ROUGHNESS_GRID", "fit_brdf", "refined_roughness", "roughness_bracket"]
+__all__ = ["ALPHA_GRID", "ROUGHNESS_GRID", "fit_brdf", "refined_roughness",
+           "relative_weights", "roughness_bracket"]
 
 # ---------------------------------------------------------------- tuning
 #: GGX roughness values tried (alpha; 0.014 is a highlight about 1 degree
@@ -129,6 +130,35 @@ def _hats(cosine: np.ndarray) -> np.ndarray:
     return basis * cosine[..., None]
 
 
+def relative_weights(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
+                     intensities: np.ndarray, usable: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Observations per unit light, and their least-squares weights relative to
+    each pixel's scale in each band (every pixel and band counts alike whatever
+    its albedo): 0 for the measurements not ``usable`` or lit under
+    MIN_FIT_COSINE at ``normals`` (their observations read 0).
+
+    Parameters
+    ----------
+    observations, usable : (m, N, c) ndarray
+        Linear values of N pixels in m images, and which to use.
+    normals : (N, 3) ndarray
+        Their unit normals (an estimate).
+    directions, intensities : (m, 3), (m, c) ndarray
+        The lights.
+
+    Returns
+    -------
+    (obs, weight) : (m, N, c) ndarrays of float64
+    """
+    lit = np.asarray(normals, dtype=np.float64) @ np.asarray(directions).T >= MIN_FIT_COSINE
+    use = np.asarray(usable, dtype=bool) & lit.T[..., None]
+    obs = np.where(use, np.asarray(observations, dtype=np.float64) /
+                   np.asarray(intensities, dtype=np.float64)[:, None, :], 0.0)
+    scale = np.sqrt((obs ** 2).sum(axis=0))  # (N, c)
+    return obs, np.where(use, 1.0 / np.maximum(scale, 1e-12) ** 2, 0.0)
+
+
 def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
              intensities: np.ndarray, usable: np.ndarray, *, settle_rounds: int = 0
              ) -> tuple[BRDF, float]:
@@ -167,14 +197,10 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     """
     obs = np.asarray(observations, dtype=np.float64)
     _m, _n_pixels, c = obs.shape
-    lit = np.maximum(normals @ directions.T, 0.0).T  # (m, N) at the given normals
-    use = np.asarray(usable, dtype=bool) & (lit >= MIN_FIT_COSINE)[..., None]
-    obs = np.where(use, obs / intensities[:, None, :], 0.0)
-    if use.sum() < 10 * (len(DIFFUSE_KNOTS) + c + 1):
-        raise InputError(f"brdf fit: only {int(use.sum())} usable lit measurements")
-    # Relative weights: each pixel and band counts alike whatever its albedo.
-    scale = np.sqrt((obs ** 2).sum(axis=0))  # (N, c)
-    base_weight = np.where(use, 1.0 / np.maximum(scale, 1e-12) ** 2, 0.0)
+    obs, base_weight = relative_weights(obs, normals, directions, intensities, usable)
+    used = np.count_nonzero(base_weight)
+    if used < 10 * (len(DIFFUSE_KNOTS) + c + 1):
+        raise InputError(f"brdf fit: only {used} usable lit measurements")
     normals = np.array(normals, dtype=np.float64)
     grid = ALPHA_GRID
     step = np.log(ALPHA_GRID[0] / ALPHA_GRID[1])

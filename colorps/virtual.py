@@ -28,7 +28,7 @@ import numpy as np
 
 from ._blas import one_blas_thread
 from .brdf import BRDF, best_normals
-from .brdf_fit import MIN_FIT_COSINE, fit_brdf, refined_roughness, roughness_bracket
+from .brdf_fit import fit_brdf, refined_roughness, relative_weights, roughness_bracket
 from .camera import Camera
 from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
@@ -425,9 +425,7 @@ def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, ma
         ys, xs = ys[pick], xs[pick]
     settings = quick.options
     observed = data[:, ys, xs, :].astype(np.float64)
-    usable = np.isfinite(observed) & (observed > settings.dark_level)
-    if settings.clip_level is not None:
-        usable &= observed < settings.clip_level
+    usable = _usable(observed, settings.dark_level, settings.clip_level)
     colours = lights.as_lighting(c).colours[:, 0, :]  # (m, c), checked against the bands
     fitted, rms = fit_brdf(observed, result.normals[ys, xs].astype(np.float64),
                            lights.directions, colours, usable, settle_rounds=settle_rounds)
@@ -473,14 +471,10 @@ def view_corrected(scene: np.ndarray, result, lights: Lights, brdf: BRDF, camera
     for y, x in _solved_chunks(result):
         normals = result.normals[y, x].astype(np.float64)
         views = -camera.rays(x, y, (height, width))
-        change = brdf.shade(normals, lights.directions, intensities) - \
-            brdf.shade(normals, lights.directions, intensities, views)
         values = scene[:, y, x, :]
-        albedo = np.nan_to_num(result.albedo[y, x], nan=0.0)  # a band without: as it is
-        corrected = np.maximum(values + change * albedo[None], 0.0)
-        if clip_level is not None:
-            corrected = np.where(values >= clip_level, values, corrected)
-        scene[:, y, x, :] = corrected
+        change = _view_change(brdf, normals, lights.directions, intensities, views,
+                              result.albedo[y, x])
+        scene[:, y, x, :] = _clipped_kept(values, values + change, clip_level)
     return scene
 
 
@@ -495,9 +489,9 @@ def without_highlight(scene: np.ndarray, result, lights: Lights, brdf: BRDF,
     gauge table holds. Each solved pixel's normal is found instead by a
     per-pixel fit of the whole finish, highlight and albedos included
     (:func:`colorps.brdf.best_normals`, from its normal in ``result``, on its
-    measurements that are neither dark, clipped nor under
-    MIN_FIT_COSINE of light, as the finish's fit), and the highlight at that normal is taken
-    out of its measurements (through a lens, ``camera``, seen along its own
+    measurements that are neither dark nor clipped, weighted as the finish's fit
+    weighs them: :func:`colorps.brdf_fit.relative_weights`), and the highlight
+    at that normal is taken out of its measurements (through a lens, ``camera``, seen along its own
     ray, the diffuse part's change from that view to the axis as in
     :func:`view_corrected`). The fit is run twice, the second time without the
     measurements under SHADOW_BELOW of what the first one's finish gives them
@@ -530,13 +524,8 @@ def without_highlight(scene: np.ndarray, result, lights: Lights, brdf: BRDF,
         views = None if camera is None else -camera.rays(x, y, (height, width))
         values = scene[:, y, x, :]
         normals = result.normals[y, x].astype(np.float64)
-        usable = np.isfinite(values) & (values > dark_level)
-        if clip_level is not None:
-            usable &= values < clip_level
-        usable &= (normals @ lights.directions.T).T[..., None] >= MIN_FIT_COSINE
-        observed = np.where(usable, values / intensities[:, None, :], 0.0)
-        scale = np.sqrt((observed ** 2).sum(axis=0))  # each pixel and band alike
-        weight = usable / np.maximum(scale, 1e-12) ** 2
+        observed, weight = relative_weights(values, normals, lights.directions, intensities,
+                                            _usable(values, dark_level, clip_level))
         normals = best_normals(observed, weight, normals, brdf, lights.directions, views)
         # Cast shadows, which the finish cannot explain, out; fitted again.
         weight[observed < SHADOW_BELOW * _modelled(observed, weight, normals, brdf,
@@ -545,14 +534,35 @@ def without_highlight(scene: np.ndarray, result, lights: Lights, brdf: BRDF,
         _diffuse, lobe = brdf.parts(normals, lights.directions, views)
         corrected = values - lobe[..., None] * specular * intensities[:, None, :]
         if views is not None and brdf.roughness:
-            change = brdf.diffuse.shade(normals, lights.directions, intensities) - \
-                brdf.diffuse.shade(normals, lights.directions, intensities, views)
-            corrected += change * np.nan_to_num(result.albedo[y, x], nan=0.0)[None]
-        np.maximum(corrected, 0.0, out=corrected)
-        if clip_level is not None:
-            corrected = np.where(values >= clip_level, values, corrected)
-        scene[:, y, x, :] = corrected
+            corrected += _view_change(brdf.diffuse, normals, lights.directions, intensities,
+                                      views, result.albedo[y, x])
+        scene[:, y, x, :] = _clipped_kept(values, corrected, clip_level)
     return scene
+
+
+def _usable(values: np.ndarray, dark_level: float, clip_level: float | None) -> np.ndarray:
+    """Measurements a fit uses: finite, above ``dark_level``, under ``clip_level``."""
+    usable = np.isfinite(values) & (values > dark_level)
+    if clip_level is not None:
+        usable &= values < clip_level
+    return usable
+
+
+def _view_change(brdf: BRDF, normals: np.ndarray, directions: np.ndarray,
+                 intensities: np.ndarray, views: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """(m, N, c) what seeing N points of ``albedo`` along the axis instead of along
+    ``views`` adds to their values under ``brdf`` (a band without albedo: nothing)."""
+    change = brdf.shade(normals, directions, intensities) - \
+        brdf.shade(normals, directions, intensities, views)
+    return change * np.nan_to_num(albedo, nan=0.0)[None]
+
+
+def _clipped_kept(values: np.ndarray, corrected: np.ndarray,
+                  clip_level: float | None) -> np.ndarray:
+    """``corrected`` at least 0, the clipped ``values`` as they were."""
+    corrected = np.maximum(corrected, 0.0)
+    return corrected if clip_level is None else np.where(values >= clip_level, values,
+                                                         corrected)
 
 
 def _solved_chunks(result):
