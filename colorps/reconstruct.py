@@ -31,6 +31,7 @@ import numpy as np
 from . import _pixel_kernels, light_masks
 from ._blas import one_blas_thread
 from ._checks import check_stack, mask_box
+from ._pages import small_pages
 from .errors import GaugeWarning, InputError, LowSolvedWarning
 from .gauge import Gauge, parse_albedo
 from .matching import Matches, first_match, match_pixels
@@ -129,7 +130,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
     >>> result.normals.shape, result.albedo.shape, bool(result.solved.sum() == scene.mask.sum())
     ((64, 64, 3), (64, 64, 3), True)
     """
-    with one_blas_thread():
+    with one_blas_thread(), small_pages():
         t_start = time.perf_counter()
         run = resolve(options, **changes)
         options = run.options

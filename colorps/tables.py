@@ -85,10 +85,6 @@ class GaugeTables:
             self.reused += 1
         return grid
 
-    def resize(self, max_mib: float) -> None:
-        """Keep grids up to ``max_mib`` from now on (those kept stay)."""
-        self.max_bytes = int(max_mib * 2 ** 20)
-
     def kept(self, name: str, sources: tuple, make: Callable[[], object]):
         """What ``make()`` returns for ``sources``: made on the first call, and
         again only when called with other sources (compared by identity, each

@@ -27,6 +27,7 @@ import warnings
 import numpy as np
 
 from ._blas import one_blas_thread
+from ._pages import small_pages
 from .brdf import BRDF, best_normals
 from .brdf_fit import fit_brdf, refined_roughness, relative_weights, roughness_bracket
 from .camera import Camera
@@ -140,7 +141,7 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
     history : list of dict or None
         Each finish fit (:func:`fit_scene_brdf`), None when not fitted.
     """
-    with one_blas_thread():
+    with one_blas_thread(), small_pages():
         run = resolve(options)
         settings = run.options
         if "auto" in (settings.read_noise, settings.gain):
@@ -296,7 +297,7 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         The last fit, and per round the median match residual of the gauge it
         started from, the fit's RMS relative residual and its parameters.
     """
-    with one_blas_thread():
+    with one_blas_thread(), small_pages():
         run = resolve(options)
         run = resolve(run, gauge=StackModel.rendered(run.options.dark_level))
         quick = run.replace(light_subsets=False, max_residual=None, max_distance=None, tile=None)

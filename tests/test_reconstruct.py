@@ -239,3 +239,35 @@ def test_a_handed_over_stack_is_let_go_for_the_matching(monkeypatch, mode):
     assert alive_at_matching == [mode == "mono"]
     for name in ("normals", "albedo", "quality", "uncertainty", "solved"):
         np.testing.assert_array_equal(getattr(result, name), getattr(kept, name), err_msg=name)
+
+
+def _huge_pages_asked() -> bool:
+    from numpy._core.multiarray import _set_madvise_hugepage
+
+    now = _set_madvise_hugepage(False)
+    _set_madvise_hugepage(now)
+    return now
+
+
+def test_reconstruct_runs_on_small_pages_and_puts_the_setting_back(monkeypatch):
+    """numpy's huge-page requests (compaction stalls on many Linux machines) are off
+    while reconstruct runs, and as they were after it, whatever they were."""
+    from numpy._core.multiarray import _set_madvise_hugepage
+
+    module = sys.modules["colorps.reconstruct"]  # (the package's name is the function)
+
+    seen = []
+    match = module.match_pixels
+
+    def recording(*args, **kwargs):
+        seen.append(_huge_pages_asked())
+        return match(*args, **kwargs)
+
+    monkeypatch.setattr(module, "match_pixels", recording)
+    before = _set_madvise_hugepage(True)
+    try:
+        run(synth.ring_lights(6, 40))
+        assert seen and not any(seen)
+        assert _huge_pages_asked()
+    finally:
+        _set_madvise_hugepage(before)
