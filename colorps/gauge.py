@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
 from .camera import Camera
 from .errors import GaugeError, InputError
 from .geometry import circle_of_cone, silhouette_cone, sphere_normals
+from .sphere_edge import edge_points
 from .spikes import BRIGHT_PERCENTILE, spike_free
 
 __all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo",
@@ -58,18 +58,6 @@ DARK_BACKGROUND = 0.05
 #: sphere lit from one side only shows half its disk). BRIGHT_PERCENTILE is
 #: :mod:`colorps.spikes`'s, which cleans that picture first.
 SEGMENT_LEVEL = 0.05
-#: find_sphere's edge: EDGE_RAYS radii sampled every EDGE_STEP_PX from
-#: EDGE_INNER_PX inside the outline's circle to EDGE_OUTER_PX outside; on each,
-#: the edge is at half the brightness of the ramp's shoulder (the outermost point
-#: at EDGE_SHOULDER of the largest value inside, the 10-90 % edge's 90 %); radii
-#: whose largest value is under EDGE_MIN_LEVEL of the bright level (an unlit part
-#: of the rim) are left out.
-EDGE_RAYS = 720
-EDGE_STEP_PX = 0.05
-EDGE_INNER_PX = 8.0
-EDGE_OUTER_PX = 4.0
-EDGE_SHOULDER = 0.9
-EDGE_MIN_LEVEL = 0.2
 SECOND_REGION = 0.25
 MIN_OUTLINE_POINTS = 20
 RANSAC_RESIDUAL_PX = 1.0
@@ -262,12 +250,11 @@ def find_sphere(stack, camera: Camera | None = None, *, exclude=None
     of the lens: 0.4 px on the bundled sample's sharp render (its mean normal
     error 0.27 degrees against 0.13 with the true circle), 1.4 and 2.9 px with a
     Gaussian blur of 1 and 2 px. So the circle is then
-    moved to the edge (:func:`_edge_circle`): along each of EDGE_RAYS radii,
-    the edge is where the brightest picture falls to half its value at the
-    shoulder of the ramp (the outermost point still at EDGE_SHOULDER of the
-    largest value within EDGE_INNER_PX inside), and the circle is fitted again
-    to those points (radius within 0.05 px of the truth on renders blurred by
-    0 to 2 px).
+    moved to the edge (:func:`_edge_circle`): along radii of that circle the
+    brightest picture is fitted by a lit rim, blurred
+    (:func:`colorps.sphere_edge.edge_points`), and the circle is fitted again
+    to those edges (radius within 0.03 px of the truth on renders area-sampled
+    and blurred by 0 to 2 px, lit near the view or across the dome).
 
     The circle is accepted when its inliers make up MIN_INLIER_FRACTION of the
     outline and span MIN_ARC_DEG around the centre, the region lies within the
@@ -400,7 +387,7 @@ def rim_margin(stack, circle: tuple[float, float, float], camera: Camera | None 
     brightest, bright = _brightest(data)
     if not bright > 0:
         return unmeasured
-    edges = _edge_points(brightest, (cx, cy, r), bright)
+    edges = edge_points(brightest, (cx, cy, r), bright)
     if len(edges.radius) < MIN_OUTLINE_POINTS:
         return unmeasured
     blur = float(np.median(edges.radius - edges.shoulder)) \
@@ -442,45 +429,12 @@ def _circle_of(model) -> tuple[float, float, float]:
     return cx, cy, r
 
 
-class _Edges(NamedTuple):
-    """The sphere's edge along each lit radius of a circle (1-D arrays, one per radius)."""
-
-    angle: np.ndarray     # radians, from +x towards +y (rows)
-    radius: np.ndarray    # where the brightest picture falls to half its shoulder, px
-    shoulder: np.ndarray  # the ramp's shoulder (EDGE_SHOULDER of the largest value), px
-    outside: np.ndarray   # the value EDGE_OUTER_PX outside the circle over the largest
-
-
-def _edge_points(brightest: np.ndarray, circle: tuple[float, float, float],
-                 bright: float) -> _Edges:
-    """Along EDGE_RAYS radii of ``circle``, the lit ones' edge (see :func:`find_sphere`)."""
-    from scipy.ndimage import map_coordinates
-
-    cx, cy, r = circle
-    angle = np.linspace(0.0, 2 * np.pi, EDGE_RAYS, endpoint=False)
-    along = np.arange(-EDGE_INNER_PX, EDGE_OUTER_PX + EDGE_STEP_PX / 2, EDGE_STEP_PX)
-    radii = r + along[None, :]
-    profile = map_coordinates(brightest, [cy + radii * np.sin(angle)[:, None],
-                                          cx + radii * np.cos(angle)[:, None]],
-                              order=1, mode="nearest")
-    index = np.arange(along.size)
-    top = profile[:, along <= 0].max(axis=1)
-    shoulder = np.where(profile >= EDGE_SHOULDER * top[:, None], index, -1).max(axis=1)
-    half = 0.5 * profile[np.arange(EDGE_RAYS), shoulder]
-    last = np.where(profile >= half[:, None], index, -1).max(axis=1)  # outermost above half
-    lit = (top >= EDGE_MIN_LEVEL * bright) & (last + 1 < along.size)
-    rays, last, half = np.flatnonzero(lit), last[lit], half[lit]
-    above, below = profile[rays, last], profile[rays, last + 1]
-    edge = r + along[last] + (above - half) / np.maximum(above - below, 1e-12) * EDGE_STEP_PX
-    return _Edges(angle[rays], edge, r + along[shoulder[rays]], profile[rays, -1] / top[rays])
-
-
 def _edge_circle(brightest: np.ndarray, circle: tuple[float, float, float],
                  bright: float, camera: Camera | None = None) -> tuple[float, float, float]:
     """The circle through the sphere's edge near ``circle`` (see :func:`find_sphere`);
     ``circle`` itself when too few radii cross a lit edge."""
     cx, cy, _ = circle
-    edges = _edge_points(brightest, circle, bright)
+    edges = edge_points(brightest, circle, bright)
     points = np.stack([cx + edges.radius * np.cos(edges.angle),
                        cy + edges.radius * np.sin(edges.angle)], axis=1)
     if len(points) < MIN_OUTLINE_POINTS:

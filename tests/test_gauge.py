@@ -43,6 +43,33 @@ def test_find_sphere_on_rendered_gauge():
         assert abs(cx - 101.3) < 0.5 and abs(cy - 88.6) < 0.5 and abs(r - 70) < 1.0
 
 
+@pytest.mark.parametrize("radius", [20, 60])
+@pytest.mark.parametrize("lights", ["dome", "near the view"])
+def test_the_edge_of_a_blurred_lit_rim_is_found(radius, lights):
+    """The edge, not the half-height of the rim's ramp: lit near the view the rim
+    is dim against the middle (that half-height lay 0.34-0.57 px inside the edge), and
+    in front of a lit backdrop it lay up to 1.3 px outside. Area-sampled renders
+    blurred by 0, 1 and 2 px; find_sphere on a dark background (radius within
+    0.11 px, centre 0.18),
+    the edges along the true circle's radii in front of a lit backdrop (which
+    find_sphere's segmentation does not take; within 0.15 px but for the dome's
+    lights under a 2 px blur: 0.57, the half-height 0.68)."""
+    from colorps.gauge import _brightest
+    from colorps.shapes import dome_lights
+    from colorps.sphere_edge import edge_points
+
+    lighting = dome_lights(16) if lights == "dome" else synth.ring_lights(8, 20)
+    for blur in (0.0, 1.0, 2.0):
+        stack, centre = antialiased_sphere(radius, lighting, blur=blur)
+        cx, cy, r = find_sphere(stack)
+        assert abs(r - radius) < 0.15, (blur, r)
+        assert np.hypot(cx - centre, cy - centre) < 0.2, (blur, cx, cy)
+        stack, centre = antialiased_sphere(radius, lighting, backdrop=0.3, blur=blur)
+        brightest, bright = _brightest(stack)
+        edges = edge_points(brightest, (centre, centre, radius), bright)
+        assert len(edges.radius) > 600 and abs(np.median(edges.radius) - radius) < 0.6
+
+
 def test_find_sphere_refuses_non_circles(rng):
     with pytest.raises(GaugeError, match="black"):
         find_sphere(np.zeros((3, 50, 50, 3)))
@@ -98,9 +125,9 @@ def test_rim_margin_measured_on_the_images():
     from colorps.shapes import dome_lights
 
     lights = dome_lights(16)
-    for blur in (0.0, 1.0, 2.0):
+    for blur in (0.0, 1.0, 2.0):  # (plus the edge's own error: under 0.1 px)
         stack, centre = antialiased_sphere(20, lights, blur=blur)
-        assert rim_margin(stack, (centre, centre, 20)) == pytest.approx(1.0, abs=0.05)
+        assert rim_margin(stack, (centre, centre, 20)) == pytest.approx(1.0, abs=0.1)
         assert rim_margin(stack, (centre, centre, 21)) == pytest.approx(2.0, abs=0.1)
     big, centre = antialiased_sphere(100, lights, supersample=2)
     assert rim_margin(big, (centre, centre, 100)) == pytest.approx(2.0, abs=0.05)
