@@ -172,23 +172,22 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-interreflections", dest="interreflections", action="store_false",
                         help="keep the light a concave object bounces onto itself")
     parser.add_argument("--no-light-subsets", dest="light_subsets", action="store_false",
-                        help="do not re-solve shadowed or highlighted pixels from the "
-                             "lights that reach them")
+                        help="do not re-solve shadowed or highlighted pixels from their lit lights")
     parser.add_argument("--max-dropped-lights", type=_non_negative_int,
                         default=_DEFAULTS.max_dropped_lights, metavar="K",
                         help="rounds of table-based light subsets (up to 16 lights) before "
                              "the per-pixel fit, one light each")
     parser.add_argument("--max-residual", type=_or_words(_positive_float, none=None),
                         default=_DEFAULTS.max_residual, metavar="R|none",
-                        help="largest match residual of a solved pixel, in units of the "
-                             "noise model's expected residual (quality.exr); worse matches "
-                             "are 'no good match' "
+                        help="largest residual of a good match, in noise units (quality.exr); "
+                             "worse ones are solved, flagged 'solved, poor match' "
                              f"(default: {_shown(_DEFAULTS.max_residual)})")
+    parser.add_argument("--refuse-poor", action="store_true", default=_DEFAULTS.refuse_poor,
+                        help="refuse those instead ('no good match')")
     parser.add_argument("--max-distance", type=_or_words(_positive_float, none=None),
                         default=_DEFAULTS.max_distance, metavar="D|none",
                         help="also refuse pixels whose plain signature distance per band "
-                             "exceeds D (colorps 0.1's threshold) "
-                             f"(default: {_shown(_DEFAULTS.max_distance)})")
+                             f"exceeds D (default: {_shown(_DEFAULTS.max_distance)})")
     parser.add_argument("--refine", choices=("quadratic", "none"), default=_DEFAULTS.refine,
                         help="refine normals past the gauge's pixel grid (quadratic model of "
                              "the gauge around each match), with uncertainty.exr")
@@ -471,9 +470,9 @@ def _run(args, received: list[int]) -> int:
                                        scheduler=args.scheduler)
             if not args.quiet:
                 s = result.stats
-                median = s.residual_median or 0.0
-                print(f"solved {s.solved} of {s.pixels} pixels "
-                      f"({s.solved_from_light_subset} from a light subset; table "
+                median, poor = s.residual_median or 0.0, s.pixels_by_reason.get("solved, poor match", 0)
+                print(f"solved {s.solved} of {s.pixels} pixels ({s.solved_from_light_subset} "
+                      f"from a light subset, {poor} poor matches flagged; table "
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
                       f"{median:.2f}, {s.residual_median_noise_units or 0.0:.2f} in noise "
                       f"units before the model scale {s.model_scale:.2f}; "

@@ -93,8 +93,15 @@ class Options:
         more surely; their tables grow too many with more lights).
     max_residual : float or None
         Largest match residual (``quality``, in units of its expected value
-        under the noise model) of a solved pixel; worse matches are "no good
-        match". None keeps every match.
+        under the noise model) of a good match. A worse one is still solved,
+        flagged "solved, poor match" (its uncertainty takes the misfit in),
+        or refused as "no good match" with ``refuse_poor``. None: every match
+        is good.
+    refuse_poor : bool
+        Refuse the matches worse than ``max_residual`` instead of flagging them
+        (colorps 0.2's behaviour: a clean render's pixels that mix two surfaces
+        or a shadow's edge then leave holes, 1 % of a Mitsuba capture whose
+        normals were 0.5 degrees off, median).
     max_distance : float or None
         Largest plain signature distance per band of a solved pixel (the
         unweighted distance of colorps 0.1). None: no such limit.
@@ -171,6 +178,7 @@ class Options:
     light_subsets: bool = True
     max_dropped_lights: int = 2
     max_residual: float | None = 10.0
+    refuse_poor: bool = False
     max_distance: float | None = None
     refine: Literal["quadratic", "none"] = "quadratic"
     encoding: Literal["auto", "linear", "srgb"] = "auto"
@@ -215,6 +223,8 @@ class Options:
         if self.max_residual is not None and not _is_positive(self.max_residual):
             raise InputError(f"max_residual: expected a value > 0 or None, "
                              f"got {self.max_residual!r}")
+        if not isinstance(self.refuse_poor, bool):
+            raise InputError(f"refuse_poor: expected True or False, got {self.refuse_poor!r}")
         if self.max_distance is not None and not _is_positive(self.max_distance):
             raise InputError(f"max_distance: expected a value > 0 or None, "
                              f"got {self.max_distance!r}")

@@ -16,7 +16,8 @@ quality.png      quality.exr through the colour map, with its colour bar
 invalid.png      why pixels are not solved, one colour per
                  :class:`~colorps.Reason` (black solved, grey background, blue
                  too dark, yellow clipped, magenta invalid value, red no good
-                 match, teal solved from a light subset), with a legend
+                 match, teal solved from a light subset, orange solved from a
+                 poor match), with a legend
 uncertainty.exr  float32 68 % angular radius of each refined normal (degrees);
                  NaN where not solved or not refined
 uncertainty.png  uncertainty.exr through the colour map, with its colour bar

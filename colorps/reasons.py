@@ -11,9 +11,12 @@ code   member           name              meaning
 5      NO_GOOD_MATCH    "no good match"   no light subset explains it within the noise
 6      SOLVED_FROM_...  "solved from a    solved from the remaining lights after
        LIGHT_SUBSET     light subset"     dropping one or a few (shadow, highlight)
+7      SOLVED_POOR_...  "solved, poor     solved, but the gauge explains it worse
+       MATCH            match"            than ``max_residual``: its uncertainty
+                                          says how far off it may be
 =====  ===============  ================  =========================================
 
-Codes 0 and 6 are solved pixels. When an unsolved pixel has several problems
+Codes 0, 6 and 7 are solved pixels. When an unsolved pixel has several problems
 the larger code wins (a clipped and dark pixel is reported as clipped). ``invalid.png`` shows each reason in its
 ``colour`` (8-bit sRGB).
 """
@@ -58,6 +61,7 @@ class Reason(enum.IntEnum):
     INVALID_VALUE = 4, "invalid value", (255, 0, 255)
     NO_GOOD_MATCH = 5, "no good match", (255, 40, 40)
     SOLVED_FROM_LIGHT_SUBSET = 6, "solved from a light subset", (0, 150, 110)
+    SOLVED_POOR_MATCH = 7, "solved, poor match", (255, 140, 0)
 
 
 def reason_counts(reason: np.ndarray) -> dict[str, int]:

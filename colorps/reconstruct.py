@@ -153,6 +153,8 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         if options.max_residual is not None:
             poor = solved & ~(matches.quality <= options.max_residual)
             solved &= ~poor
+        if options.refine == "none" and not options.refuse_poor:
+            solved |= poor  # flagged (Reason.SOLVED_POOR_MATCH), not refused
         normals = np.full((*mask.shape, 3), np.nan, dtype=np.float32)
         normals[solved] = setup.capture.gauge_normals[matches.row[solved]]
         uncertainty = np.full(mask.shape, np.nan, dtype=np.float32)
@@ -178,7 +180,7 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
         albedo = np.full((*mask.shape, c), np.nan, dtype=np.float32)
         albedo[solved] = _albedo(setup.scene_sig, stack_box, setup.gauge_stack, solved, matches,
                                  offset, parse_albedo(gauge.albedo, c), options.clip_level)
-        reason = _reasons(setup.scene_sig, mask, solved, matches.row >= 0, matches.dropped)
+        reason = _reasons(setup.scene_sig, mask, solved, matches, options.max_residual)
         message = low_solved_message(reason, mask, solved)
         if message:
             setup.said.append(message)
@@ -376,17 +378,18 @@ def _refine(capture: Capture, gauge: Gauge, matches: Matches,
             ) -> tuple[np.ndarray, Matches, Refinement]:
     """Refine the solved pixels' normals, weighting each measurement by its noise.
 
-    With ``light_subsets``, the ``poor`` pixels (matched, but the table's nearest
-    entry leaves them over ``max_residual``) are refined too, and solved when
-    the robust fit explains its inliers within it on enough lights (as
-    :mod:`colorps.shadows` asks): lights in cast shadow near the table's rim,
-    where the shadow search keeps them, and normals past the gauge's edge,
-    which no entry is near. Their outliers join their dropped lights and their
-    quality is the inliers' residual. Returns the solved pixels, the matches
-    with those changes, and the refinement of the solved pixels (row-major
-    order).
+    The ``poor`` pixels (matched, but the table's nearest entry leaves them
+    over ``max_residual``) are refined too. With ``light_subsets`` they are
+    solved as good matches when the robust fit explains its inliers within it
+    on enough lights (as :mod:`colorps.shadows` asks): lights in cast shadow
+    near the table's rim, where the shadow search keeps them, and normals past
+    the gauge's edge, which no entry is near; their outliers join their
+    dropped lights and their quality is the inliers' residual. The others are
+    solved as they are (poor matches, flagged) unless ``refuse_poor``.
+    Returns the solved pixels, the matches with those changes, and the
+    refinement of the solved pixels (row-major order).
     """
-    if not options.light_subsets:
+    if not options.light_subsets and options.refuse_poor:
         poor = np.zeros_like(poor)
     tried = solved | poor
     ys, xs = np.nonzero(tried)
@@ -411,13 +414,13 @@ def _refine(capture: Capture, gauge: Gauge, matches: Matches,
     bands = light_masks.count(matches.bands_used[ys, xs][:, None])  # bits set: bands matched
     fitted = refined.inlier_residual / matches.model_scale
     rescued = poor[ys, xs] & refined.refined & (fitted <= options.max_residual) & \
-        fixes_normal(bands, lights)
-    keep = solved[ys, xs] | rescued
+        fixes_normal(bands, lights) & options.light_subsets
+    keep = solved[ys, xs] | rescued | (poor[ys, xs] & (not options.refuse_poor))
     quality, all_dropped = matches.quality.copy(), matches.dropped.copy()
     quality[ys[rescued], xs[rescued]] = fitted[rescued]
     all_dropped[ys[rescued], xs[rescued]] = dropped[rescued]
     solved = solved.copy()
-    solved[ys[rescued], xs[rescued]] = True
+    solved[ys[keep], xs[keep]] = True
     kept = Refinement(*(getattr(refined, f.name)[keep] for f in dataclasses.fields(refined)))
     return solved, dataclasses.replace(matches, quality=quality, dropped=all_dropped), kept
 
@@ -464,11 +467,13 @@ def _albedo(scene_sig: SignatureSet, stack_box: np.ndarray | None, gauge_stack: 
 
 
 def _reasons(scene_sig: SignatureSet, mask: np.ndarray, solved: np.ndarray,
-             matched: np.ndarray, dropped: np.ndarray) -> np.ndarray:
+             matches: Matches, max_residual: float | None) -> np.ndarray:
     """(H, W) uint8 :class:`Reason` codes; of several problems the larger code wins."""
     reason = np.full(mask.shape, Reason.SOLVED, dtype=np.uint8)
-    reason[solved & ~light_masks.is_empty(dropped)] = Reason.SOLVED_FROM_LIGHT_SUBSET
-    unsolved = mask & ~solved
+    reason[solved & ~light_masks.is_empty(matches.dropped)] = Reason.SOLVED_FROM_LIGHT_SUBSET
+    if max_residual is not None:
+        reason[solved & (matches.quality > max_residual)] = Reason.SOLVED_POOR_MATCH
+    matched, unsolved = matches.row >= 0, mask & ~solved
     reason[unsolved & scene_sig.band_dark.any(axis=-1)] = Reason.TOO_DARK
     reason[unsolved & scene_sig.band_clipped.any(axis=-1)] = Reason.CLIPPED
     reason[unsolved & scene_sig.band_invalid_value.any(axis=-1)] = Reason.INVALID_VALUE

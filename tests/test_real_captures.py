@@ -166,7 +166,8 @@ def test_cast_shadows_of_the_relief_solved_with_the_light_identified():
     stack = synth.render(scene, lights, cast_shadows=True, noise=0.002, seed=1)
     gauge_stack, gauge = gauge_for(lights, noise=0.002)
     result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
-    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
+    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False,
+                        refuse_poor=True)  # (flagged, not refused, by default)
     one = (shadows.sum(axis=0) == 1) & scene.mask
     assert one.sum() > 500
     lit = np.argmax(shadows[:, one], axis=0).astype(np.uint64)
@@ -411,7 +412,8 @@ def test_a_clipped_gauge_and_cast_shadows_under_many_lights(monkeypatch):
     def run(gauge_stack):
         with warnings.catch_warnings():  # the clipped gauge's exposure warning
             warnings.simplefilter("ignore", GaugeWarning)
-            result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, clip_level=1.0)
+            result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, clip_level=1.0,
+                                 refuse_poor=True)  # (flagged, not refused, by default)
         errors = np.where(result.solved, angular_error(result.normals, scene.normals), 90.0)
         return errors[scene.mask], result
 

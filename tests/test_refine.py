@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from colorps import Gauge, angular_error, reconstruct, synth
+from colorps import Gauge, Reason, angular_error, reconstruct, synth
 
 
 def capture(radius, brdf="lambert", noise=0.0, size=160, lights=None):
@@ -251,7 +251,8 @@ def test_pixels_the_table_leaves_poor_are_solved_by_the_robust_fit(folds):
     entry explains them, nor does the shadow search drop lights on the rim, so
     the match leaves them over max_residual. The refinement's robust fit
     explains their inliers: they are solved, their outliers (mostly the cast
-    shadows) listed with their dropped lights; refine="none" refuses them."""
+    shadows) listed with their dropped lights; refine="none" refuses them (with
+    refuse_poor; by default it solves them with the table's normal, flagged)."""
     from colorps import light_masks
     from colorps.shapes import dome_lights
 
@@ -259,7 +260,7 @@ def test_pixels_the_table_leaves_poor_are_solved_by_the_robust_fit(folds):
     edge = 60.0
     gauge = Gauge.from_sphere((80, 80), 39.5, 39.5, 35,
                               rim_margin=35 * (1 - np.sin(np.radians(edge))))
-    settings = dict(mask=scene.mask, read_noise=0.003, gain=0.0)
+    settings = dict(mask=scene.mask, read_noise=0.003, gain=0.0, refuse_poor=True)
     result = reconstruct(stack, gauge_stack, gauge, **settings)
     table = reconstruct(stack, gauge_stack, gauge, refine="none", **settings)
     assert result.solved[scene.mask].all()
@@ -271,6 +272,10 @@ def test_pixels_the_table_leaves_poor_are_solved_by_the_robust_fit(folds):
     shadowed = synth.shadow_maps(scene, dome_lights(24))[:, 0][:, rescued]
     dropped = light_masks.to_bool(result.dropped_lights[rescued], 24).T
     assert (dropped & shadowed).sum() >= 0.8 * shadowed.sum()
+    flagged = reconstruct(stack, gauge_stack, gauge, refine="none", mask=scene.mask,
+                          read_noise=0.003, gain=0.0)
+    assert flagged.solved[scene.mask].all()
+    assert (flagged.reason[rescued] == Reason.SOLVED_POOR_MATCH).all()
 
 
 

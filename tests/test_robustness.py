@@ -128,9 +128,13 @@ def test_cast_shadow_solved_from_the_other_lights():
     assert angular_error(result.normals[shadow], scene.normals[shadow]).mean() < 1.0
     assert result.solved[lit].mean() > 0.99 and (result.lights_dropped_count[lit] == 0).mean() > 0.99
     assert result.stats.dropped_per_light[2]["darker"] >= shadow.sum() * 0.95
-    # Without light subsets the same pixels are no good match, with a large residual.
+    # Without light subsets the same pixels are poor matches, with a large residual:
+    # flagged, or refused as no good match with refuse_poor.
     plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
-    assert (plain.reason[shadow] == Reason.NO_GOOD_MATCH).mean() > 0.9
+    assert (plain.reason[shadow] == Reason.SOLVED_POOR_MATCH).mean() > 0.9
+    refused = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False,
+                          refuse_poor=True)
+    assert (refused.reason[shadow] == Reason.NO_GOOD_MATCH).mean() > 0.9
     assert np.nanmedian(plain.quality[shadow]) > 5 * np.nanmedian(plain.quality[lit])
 
 

@@ -4,7 +4,7 @@ per-pixel residual against the table's, and whole captures of deep folds."""
 import numpy as np
 import pytest
 
-from colorps import Gauge, angular_error, light_masks, reconstruct, synth
+from colorps import Gauge, Reason, angular_error, light_masks, reconstruct, synth
 from colorps import _shadow_kernels as kernels
 from colorps._config import MIN_LIGHTS
 from colorps.noise import NoiseModel
@@ -169,10 +169,18 @@ def test_pixels_shadowed_under_many_lights_are_solved(folds):
 
 def test_shadowed_pixels_are_refused_without_light_subsets(folds):
     """The same capture with light subsets off refuses what it cannot explain
-    (the stage is what solves them)."""
+    (the stage is what solves them), or by default solves it flagged as a poor
+    match, its uncertainty wider than its error."""
     scene, lights, stack, gauge_stack, gauge, shadows = folds
-    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
+    plain = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False,
+                        refuse_poor=True)
     assert plain.solved[scene.mask].mean() < 0.98
+    refused = scene.mask & ~plain.solved
+    flagged = reconstruct(stack, gauge_stack, gauge, mask=scene.mask, light_subsets=False)
+    assert flagged.solved[scene.mask].all()
+    assert (flagged.reason[refused] == Reason.SOLVED_POOR_MATCH).all()
+    error = angular_error(flagged.normals[refused], scene.normals[refused])
+    assert np.mean(error <= flagged.uncertainty[refused]) > 0.68
 
 
 def test_one_bounce_interreflection_lights_folds_not_open_surfaces():

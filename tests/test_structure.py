@@ -91,13 +91,13 @@ def test_array_api_and_keyword_changes_agree():
 
 
 def test_reasons_are_one_enum():
-    assert [int(r) for r in Reason] == list(range(7))
-    assert len({r.label for r in Reason}) == len({r.colour for r in Reason}) == 7
-    codes = np.array([[0, 1, 2, 3], [4, 5, 6, 6]], dtype=np.uint8)
+    assert [int(r) for r in Reason] == list(range(8))
+    assert len({r.label for r in Reason}) == len({r.colour for r in Reason}) == 8
+    codes = np.array([[0, 1, 2, 3, 7], [4, 5, 6, 6, 7]], dtype=np.uint8)
     picture = reason_picture(codes)
     for r in Reason:
         np.testing.assert_allclose(picture[codes == r][0] * 255, r.colour, atol=1e-4)
-    assert reason_counts(codes) == {r.label: 2 if r == 6 else 1 for r in Reason}
+    assert reason_counts(codes) == {r.label: 2 if r in (6, 7) else 1 for r in Reason}
 
 
 def test_sphere_normals_and_angular_error():
