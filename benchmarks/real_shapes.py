@@ -155,16 +155,15 @@ def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask, first=None
     object bounces onto itself taken out
     (:func:`colorps.interreflection.without_interreflections`, from the scene as
     ``read_scene()`` gives it, ``stack`` by default), as ``colorps reconstruct``
-    does by default (the gauge's side shared by every solve, its grids by the
-    passes): the result and the measurements it was solved from (None: ``stack``)."""
-    tables = GaugeTables(0)
+    does by default (the gauge's side and its grids shared by every solve): the
+    result and the measurements it was solved from (None: ``stack``)."""
+    tables = GaugeTables(kept_grids_mib("auto", stack.shape))
 
     def solve(images, pixels=None, model_scale=None):
         return reconstruct(images, gauge_stack, gauge, settings, model_scale=model_scale,
                            mask=mask if pixels is None else pixels, tables=tables)
 
     first = solve(stack) if first is None else first
-    tables.resize(kept_grids_mib("auto", stack.shape))
     return without_interreflections(read_scene or (lambda: stack), first, solve, gauge,
                                     gauge_stack)[:2]
 
