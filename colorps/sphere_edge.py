@@ -115,13 +115,13 @@ def _fitted_edges(profile: np.ndarray, along: np.ndarray, radius: float
     at_one_px = np.array([1.0, inward, np.sqrt(inward * (2.0 - inward)), -1.0])
     for sigma in EDGE_BLUR_PX:
         bases = _shifted_bases(along, shifts, sigma, radius)  # (shifts, 4, S)
-        rhs = np.einsum("rs,kbs->krb", profile, bases)         # (shifts, R, 4)
-        gram = np.einsum("kbs,kcs->kbc", bases, bases) + 1e-12 * np.eye(4)
-        levels = np.linalg.solve(gram[:, None], rhs[..., None])[..., 0]
-        cost = power[None, :] - np.einsum("krb,krb->kr", levels, rhs)
+        rhs = (bases.reshape(-1, along.size) @ profile.T).reshape(shifts.size, 4, -1)
+        gram = bases @ bases.transpose(0, 2, 1) + 1e-12 * np.eye(4)
+        levels = np.linalg.inv(gram) @ rhs  # (shifts, 4, R): one gram a shift
+        cost = power[None, :] - (levels * rhs).sum(axis=1)
         better = cost < misfit
         misfit = np.where(better, cost, misfit)
-        fall = np.where(better, levels @ at_one_px, fall)
+        fall = np.where(better, np.einsum("b,kbr->kr", at_one_px, levels), fall)
     best = misfit.argmin(axis=0)
     rays = np.arange(len(profile))
     inner = (best > 0) & (best < shifts.size - 1)
