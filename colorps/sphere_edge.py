@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["EDGE_MIN_LEVEL", "Edges", "edge_points"]
+__all__ = ["Edges", "edge_points"]
 
 # ---------------------------------------------------------------- tuning
 #: EDGE_RAYS radii sampled every EDGE_STEP_PX from EDGE_INNER_PX inside the
