@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import EncodingWarning, GaugeWarning
+from .camera import Camera
+from .errors import CameraWarning, EncodingWarning, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
 from .noise import NoiseModel, estimate_noise, lit_measurements
@@ -40,7 +41,8 @@ if TYPE_CHECKING:
     from .results import ReconstructionStats
 
 __all__ = ["ENCODING_RATIO", "POOR_FIT", "as_linear", "check_gauge", "check_lights",
-           "finish_differs", "judge_finish", "lambertian_fit", "lights_fit", "noisier_scene", "sphere_fit"]
+           "finish_differs", "judge_finish", "lambertian_fit", "lens_hint", "lights_fit",
+           "noisier_scene", "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -89,6 +91,16 @@ NOISE_LEVEL_SAMPLE = 100_000
 #: normals 0.11-0.57 degrees off instead of 1.4-2.6 on all six; where the
 #: finishes match, 1.0-1.7 (docs/benchmarks.md).
 CLEARLY_BETTER = 0.85
+#: A matte gauge read without a camera is fitted again through pinholes of focal
+#: lengths LENS_FOCAL_RADII times its radius (principal point at the image's
+#: centre); when the best of them, inside that range, leaves under LENS_BETTER of
+#: the orthographic reading's Lambertian residual, the images were taken through
+#: a lens (warned). On LENS_PIXELS of the gauge's pixels within LENS_INNER of its
+#: radius. A Mitsuba gauge seen at 3772 px: 0.0005 there, 0.013 orthographically.
+LENS_FOCAL_RADII = np.geomspace(4.0, 400.0, 17)
+LENS_BETTER = 0.25
+LENS_PIXELS = 4000
+LENS_INNER = 0.9
 
 
 def sphere_fit(stack: np.ndarray, gauge: Gauge) -> float:
@@ -318,6 +330,69 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
             f"{best:.2f}; matte gauges leave about 0.1 or less): check that scene and gauge "
             "are not swapped, --sphere, and that the gauge is not a mirror ball",
             GaugeWarning, stacklevel=3)
+    return record
+
+
+def lens_hint(stack: np.ndarray, gauge: Gauge, first_file: Path) -> dict | None:
+    """Whether a gauge read orthographically shades as if seen through a lens.
+
+    Its Lambertian fit (:func:`sphere_fit`) is tried again with the normals of
+    pinholes of LENS_FOCAL_RADII times its radius; warns (CameraWarning) when
+    the best leaves under LENS_BETTER of the orthographic residual. A glossy or
+    rough gauge's shading does not tell a lens (its highlights or its falloff
+    move the best focal length), so only a matte one is asked (MATTE_FIT).
+
+    Parameters
+    ----------
+    stack : (m, Hg, Wg, c) ndarray
+        Linear gauge images.
+    gauge : Gauge
+        The sphere as read (orthographically).
+    first_file : Path
+        The first gauge file, for messages.
+
+    Returns
+    -------
+    dict or None
+        ``focal_px``, ``residual`` and ``orthographic_residual``; None for a
+        gauge that is not a matte sphere.
+    """
+    if gauge.sphere is None:
+        return None
+    cx, cy, r = gauge.sphere
+    ys, xs = np.nonzero(gauge.mask)
+    inner = np.flatnonzero(np.hypot(xs - cx, ys - cy) < LENS_INNER * r)
+    inner = inner[np.linspace(0, inner.size - 1, min(LENS_PIXELS, inner.size)).astype(int)]
+    ys, xs = ys[inner], xs[inner]
+    pixels = np.asarray(stack)[:, ys, xs]
+    orthographic = _sphere_fit_pixels(pixels, gauge.normals[ys, xs])
+    if not orthographic < MATTE_FIT:
+        return None
+    # The sphere's box alone, with the whole image's principal point.
+    h, w = gauge.mask.shape
+    y0, x0 = max(0, int(cy - r) - 2), max(0, int(cx - r) - 2)
+    box = (min(h, int(cy + r) + 3) - y0, min(w, int(cx + r) + 3) - x0)
+    fits = [_sphere_fit_pixels(pixels, Gauge.from_sphere(
+        box, cx - x0, cy - y0, r, camera=Camera(focal * r, focal * r, (w - 1) / 2 - x0,
+                                                (h - 1) / 2 - y0)).normals[ys - y0, xs - x0])
+        for focal in LENS_FOCAL_RADII]
+    best = int(np.nanargmin(fits))
+    inside = 0 < best < len(fits) - 1
+    step = 0.0  # a parabola through the best and its neighbours, in log focal length
+    if inside and fits[best - 1] - 2 * fits[best] + fits[best + 1] > 0:
+        a, b, c = fits[best - 1:best + 2]
+        step = float(np.clip(0.5 * (a - c) / (a - 2 * b + c), -1.0, 1.0))
+    focal = LENS_FOCAL_RADII[best] * (LENS_FOCAL_RADII[1] / LENS_FOCAL_RADII[0]) ** step
+    record = dict(focal_px=float(focal * r), residual=float(fits[best]),
+                  orthographic_residual=float(orthographic))
+    if inside and fits[best] < LENS_BETTER * orthographic:
+        warnings.warn(
+            f"{first_file}: the gauge shades as a matte sphere seen through a lens of focal "
+            f"length about {record['focal_px']:.0f} px (its Lambertian fit leaves "
+            f"{fits[best]:.4f} then, {orthographic:.4f} read orthographically, with the "
+            "principal point at the image's centre): without --camera its normals are read "
+            "as if seen from infinitely far, which can cost a degree or more; give --camera "
+            "FOCAL_PX or the camera's K.txt", CameraWarning, stacklevel=3)
     return record
 
 

@@ -39,6 +39,7 @@ from .gauge_check import (
     check_lights,
     finish_differs,
     judge_finish,
+    lens_hint,
     noisier_scene,
 )
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
@@ -381,6 +382,8 @@ def _make_gauge(inputs: CaptureFiles, stacks: _Stacks, scene, run: Resolved, mas
     gauge = photographed(gauge_stack)
     checked = check_gauge(gauge_stack, gauge, stacks.gauge_paths[0], encoding,
                           top_code(stacks.gauge_infos[0]))
+    if inputs.camera is None:  # read orthographically: does it shade as through a lens?
+        checked["lens_fit"] = lens_hint(gauge_stack, gauge, stacks.gauge_paths[0])
     if checked["decoded_as"]:
         gauge_stack = as_linear(gauge_stack, stacks.gauge_paths, stacks.gauge_infos[0], "gauge")
         gauge = photographed(gauge_stack)

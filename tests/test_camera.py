@@ -2,11 +2,12 @@
 that give a camera."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
 
-from colorps import Gauge, InputError, angular_error, reconstruct
+from colorps import Gauge, InputError, angular_error, reconstruct, synth
 from colorps.camera import Camera, read_camera
 from colorps.geometry import sphere_normals
 
@@ -372,3 +373,35 @@ def test_no_exif_camera_for_stacks_of_different_sizes(tmp_path):
     assert CaptureFiles("s.tif", gauge="g.tif", camera="orthographic").camera is None
     with pytest.raises(InputError, match="camera"):
         CaptureFiles("s.tif", gauge="g.tif", camera="fisheye")
+
+
+def test_a_lens_is_told_from_a_matte_gauges_shading(tmp_path):
+    """A matte gauge photographed through a lens and read without --camera: its
+    Lambertian fit is far tighter through a pinhole of the true focal length, so
+    colorps warns with that focal length (within 5 %); read from an orthographic
+    render it stays quiet. Point-sampled ray casts (render_sphere), noise 0.002."""
+    from colorps import find_sphere
+    from colorps.errors import CameraWarning
+    from colorps.gauge_check import lens_hint
+
+    shape = (200, 260)
+    rng = np.random.default_rng(5)
+    theta, phi = np.radians(np.linspace(10, 45, 12)), np.linspace(0, 6 * np.pi, 12)
+    lights = np.column_stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                              np.cos(theta)])
+    camera = Camera(900.0, 900.0)
+    stack, _, _ = render_sphere(camera, shape, (0.8, 0.2, -16.0), lights)
+    stack += rng.normal(0, 0.002, stack.shape).astype(np.float32)
+    circle = find_sphere(stack)
+    gauge = Gauge.from_sphere(shape, *circle)
+    with pytest.warns(CameraWarning, match="through a lens of focal length about"):
+        record = lens_hint(stack, gauge, tmp_path / "gauge_0.exr")
+    assert record["focal_px"] == pytest.approx(900.0, rel=0.05)
+    assert record["residual"] < 0.25 * record["orthographic_residual"]
+
+    flat = synth.render(synth.sphere_surface(shape, circle[2], centre=circle[:2]),
+                        synth.ring_lights(8, 35), noise=0.002, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CameraWarning)
+        record = lens_hint(flat, Gauge.from_sphere(shape, *circle), tmp_path / "gauge_0.exr")
+    assert record["focal_px"] > 20 * circle[2]
