@@ -99,7 +99,7 @@ CLEARLY_BETTER = 0.85
 #: radius. A Mitsuba gauge seen at 3772 px: 0.0005 there, 0.013 orthographically.
 LENS_FOCAL_RADII = np.geomspace(4.0, 400.0, 17)
 LENS_BETTER = 0.25
-LENS_PIXELS = 4000
+LENS_PIXELS = 1500
 LENS_INNER = 0.9
 
 
