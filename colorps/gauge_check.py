@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .camera import Camera
-from .errors import CameraWarning, EncodingWarning, GaugeWarning
+from .errors import CameraWarning, EncodingWarning, GaugeError, GaugeWarning
 from .gauge import Gauge
 from .lights import Lights
 from .noise import NoiseModel, estimate_noise, lit_measurements
@@ -372,10 +372,16 @@ def lens_hint(stack: np.ndarray, gauge: Gauge, first_file: Path) -> dict | None:
     h, w = gauge.mask.shape
     y0, x0 = max(0, int(cy - r) - 2), max(0, int(cx - r) - 2)
     box = (min(h, int(cy + r) + 3) - y0, min(w, int(cx + r) + 3) - x0)
-    fits = [_sphere_fit_pixels(pixels, Gauge.from_sphere(
-        box, cx - x0, cy - y0, r, camera=Camera(focal * r, focal * r, (w - 1) / 2 - x0,
-                                                (h - 1) / 2 - y0)).normals[ys - y0, xs - x0])
-        for focal in LENS_FOCAL_RADII]
+    fits = np.full(LENS_FOCAL_RADII.size, np.nan)
+    for k, focal in enumerate(LENS_FOCAL_RADII):
+        camera = Camera(focal * r, focal * r, (w - 1) / 2 - x0, (h - 1) / 2 - y0)
+        try:
+            normals = Gauge.from_sphere(box, cx - x0, cy - y0, r, camera=camera).normals
+        except GaugeError:  # (a sphere that lens would not show whole)
+            continue
+        fits[k] = _sphere_fit_pixels(pixels, normals[ys - y0, xs - x0])
+    if not np.isfinite(fits).any():
+        return None
     best = int(np.nanargmin(fits))
     inside = 0 < best < len(fits) - 1
     step = 0.0  # a parabola through the best and its neighbours, in log focal length
