@@ -22,6 +22,7 @@ from .light_files import calibrate_lights_files
 from .memory import AUTO_MEMORY_FRACTION
 from .options import FLOAT_DARK_LEVEL, NORMAL_CONVENTIONS, Options
 from .pipeline import reconstruct_files
+from .reasons import Reason
 from .relight import FINISHES, RELIT_FORMATS
 from .synth import FILE_FORMATS, LIGHT_LAYOUTS
 
@@ -470,7 +471,7 @@ def _run(args, received: list[int]) -> int:
                                        scheduler=args.scheduler)
             if not args.quiet:
                 s = result.stats
-                median, poor = s.residual_median or 0.0, s.pixels_by_reason.get("solved, poor match", 0)
+                median, poor = s.residual_median or 0.0, s.pixels_by_reason[Reason.SOLVED_POOR_MATCH.label]
                 print(f"solved {s.solved} of {s.pixels} pixels ({s.solved_from_light_subset} "
                       f"from a light subset, {poor} poor matches flagged; table "
                       f"{s.table_size}, grid N={s.grid_n}, median residual "

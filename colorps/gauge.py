@@ -253,7 +253,7 @@ def find_sphere(stack, camera: Camera | None = None, *, exclude=None
     moved to the edge (:func:`_edge_circle`): along radii of that circle the
     brightest picture is fitted by a lit rim, blurred
     (:func:`colorps.sphere_edge.edge_points`), and the circle is fitted again
-    to those edges (radius within 0.03 px of the truth on renders area-sampled
+    to those edges (radius within 0.11 px of the truth on renders area-sampled
     and blurred by 0 to 2 px, lit near the view or across the dome).
 
     The circle is accepted when its inliers make up MIN_INLIER_FRACTION of the
