@@ -160,8 +160,9 @@ def relative_weights(observations: np.ndarray, normals: np.ndarray, directions: 
 
 
 def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
-             intensities: np.ndarray, usable: np.ndarray, *, settle_rounds: int = 0
-             ) -> tuple[BRDF, float]:
+             intensities: np.ndarray, usable: np.ndarray, *, settle_rounds: int = 0,
+             held_falloff: tuple | None = None, known_normals: bool = False,
+             views: np.ndarray | None = None) -> tuple[BRDF, float]:
     """Fit a :class:`BRDF` to observations of pixels at known (estimated) normals.
 
     The falloff g and the normals' tilt can explain much the same shading: a
@@ -184,6 +185,15 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
         Measurements to fit (not clipped, not dark, finite).
     settle_rounds : int, optional
         Rounds (of 1 + JOINT_ROUNDS) that hold the falloff at Lambert's.
+    held_falloff : tuple of float, optional
+        A falloff (at DIFFUSE_KNOTS) held through every round instead: a
+        gauge's of the same finish (:mod:`colorps.gauge_finish`), where the
+        normals are estimates and the falloff would otherwise trade with their
+        tilt.
+    known_normals : bool, optional
+        The normals are known (a gauge's): not refined between rounds.
+    views : (N, 3) ndarray, optional
+        Each pixel's unit direction towards the camera (default +z).
 
     Returns
     -------
@@ -207,25 +217,28 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     brdf = BRDF.lambert()  # round 0 fits at the given normals; later rounds refine them
     roughness_grid = ROUGHNESS_GRID[::2]  # every other value first, then neighbours
     kinds = (False, True)  # tinted and white highlights: the better one is kept
+    held = held_falloff is not None
+    centre = np.asarray(held_falloff if held else BRDF.lambert().falloff, dtype=np.float64)
     for round_ in range(1 + JOINT_ROUNDS):
-        if round_:
-            normals = _relaxed_normals(obs, base_weight, normals, brdf, directions)
-        angles = shading_angles(normals, directions)  # one round's normals
+        if round_ and not known_normals:
+            normals = _relaxed_normals(obs, base_weight, normals, brdf, directions, views)
+        angles = shading_angles(normals, directions, views)  # one round's normals
         hats = _hats(angles[0])  # (m, N, K)
         fits = {}
 
-        prior = SETTLED_PRIOR_WEIGHT if round_ < settle_rounds else PRIOR_WEIGHT
+        prior = (SETTLED_PRIOR_WEIGHT if held or round_ < settle_rounds else PRIOR_WEIGHT,
+                 centre)
 
         def basis_at(roughness, hats=hats, normals=normals):
             return hats if roughness == 0.0 else \
-                hats * oren_nayar_factor(normals, directions, roughness)[..., None]
+                hats * oren_nayar_factor(normals, directions, roughness, views)[..., None]
 
         # One robust threshold for every fit of the round (their costs compared):
         # from Lambert's residuals. (One per roughness, from its own Lambertian
         # start, scored the roughnesses on different scales: Oren-Nayar 0.3 folds
         # 0.26 against 0.14 degrees in virtual mode.)
         threshold = _huber_threshold(obs, base_weight, hats, np.zeros(obs.shape[:2]), False,
-                                     np.ones(len(DIFFUSE_KNOTS)), np.zeros(c))
+                                     centre, np.zeros(c))
 
         def fit_at(alpha, roughness, white, fits=fits, angles=angles, prior=prior,
                    threshold=threshold):  # this round's, bound now
@@ -264,10 +277,10 @@ def fit_brdf(observations: np.ndarray, normals: np.ndarray, directions: np.ndarr
     return brdf, float(np.sqrt(cost))
 
 
-def _relaxed_normals(obs, weight, normals, brdf: BRDF, directions) -> np.ndarray:
+def _relaxed_normals(obs, weight, normals, brdf: BRDF, directions, views) -> np.ndarray:
     """The sample's normals refined under ``brdf``, their step over-relaxed
     (OVER_RELAXATION)."""
-    refined = best_normals(obs, weight, normals, brdf, directions)
+    refined = best_normals(obs, weight, normals, brdf, directions, views)
     moved = normals + OVER_RELAXATION * (refined - normals)
     return moved / np.linalg.norm(moved, axis=1, keepdims=True)
 
@@ -288,12 +301,13 @@ def _huber_threshold(obs, base_weight, diffuse_basis, lobe, white, falloff, spec
     return HUBER_K * 1.4826 * float(np.median(np.abs(relative[base_weight > 0]))) + 1e-12
 
 
-def _fit_at(obs, base_weight, diffuse_basis, lobe, prior_weight, white, threshold):
+def _fit_at(obs, base_weight, diffuse_basis, lobe, prior, white, threshold):
     """Alternating least squares at one alpha: (falloff, specular, cost).
 
     ``white``: the highlight is absolute, else relative to the albedo.
-    ``prior_weight`` is the pull of the falloff towards Lambert's (PRIOR_WEIGHT,
-    or SETTLED_PRIOR_WEIGHT to hold it there).
+    ``prior`` is (the pull of the falloff towards a centre: PRIOR_WEIGHT, or
+    SETTLED_PRIOR_WEIGHT to hold it there; that centre, at DIFFUSE_KNOTS:
+    Lambert's or a held one).
 
     The cost is the mean Huber loss of the relative residuals beyond
     ``threshold`` (:func:`_huber_threshold`; the same for every fit of a round).
@@ -308,7 +322,8 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe, prior_weight, white, threshol
     k = diffuse_basis.shape[-1]
     obs, base_weight, diffuse_basis, lobe = (np.ascontiguousarray(a, dtype=np.float64) for a in
                                              (obs, base_weight, diffuse_basis, lobe))
-    falloff = np.ones(k)
+    prior_weight, centre = prior
+    falloff = np.array(centre, dtype=np.float64)
     specular = np.zeros(c)
     robust = np.ones_like(obs)
     albedo = np.empty((n_pixels, c))
@@ -320,7 +335,7 @@ def _fit_at(obs, base_weight, diffuse_basis, lobe, prior_weight, white, threshol
     for j in range(k - 3):
         second[j, j:j + 3] = (1.0, -2.0, 1.0)
     regulariser = prior_weight * prior.T @ prior + SMOOTHNESS_WEIGHT * second.T @ second
-    pull = prior_weight * prior.T @ np.ones(k - 1)
+    pull = prior_weight * prior.T @ centre[:-1]
     measured = np.count_nonzero(base_weight)
     data = dict(obs=obs, weight=base_weight, basis=diffuse_basis, lobe=lobe, white=white)
     kernels.fit_albedo(robust=robust, falloff=falloff, specular=specular, albedo=albedo,

@@ -146,7 +146,7 @@ class Options:
         its noise explains (:func:`colorps.gauge_check.finish_differs`: the
         gauge's finish is not the scene's), solve it again with the lights
         measured on the gauge and the scene's own fitted finish
-        (:func:`colorps.virtual.with_gauge_lights`), and keep that when it
+        (:func:`colorps.gauge_finish.with_gauge_lights`), and keep that when it
         matches clearly better (:func:`colorps.gauge_check.judge_finish`).
     interreflections : bool
         Files, untiled: where the solved object sees itself (a concave one),

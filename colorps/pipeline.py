@@ -9,7 +9,7 @@ make the gauge (photographed: :meth:`colorps.Gauge.from_sphere`; rendered:
 :func:`colorps.tiles.reconstruct_tiled`), take out the light a concave object
 bounces onto itself (:func:`colorps.interreflection.without_interreflections`;
 a rendered gauge's finish fitted again without it), try the gauge's lights when
-the scene's finish looks another (:func:`colorps.virtual.with_gauge_lights`;
+the scene's finish looks another (:func:`colorps.gauge_finish.with_gauge_lights`;
 the bounced light then taken out again with its shape and finish),
 integrate the height (:func:`colorps.integrate`) while the maps are written
 (:func:`colorps.outputs.save_reconstruction`). Option values arrive converted
@@ -42,6 +42,7 @@ from .gauge_check import (
     lens_hint,
     noisier_scene,
 )
+from .gauge_finish import with_gauge_lights
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
@@ -91,7 +92,6 @@ from .virtual import (
     match_along_rays,
     matched_again,
     virtual_gauge,
-    with_gauge_lights,
     with_own_finish,
 )
 
@@ -537,7 +537,7 @@ def _left_in(result, why: str, advice: str) -> dict:
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
                        mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
     """A run whose matte gauge explains its scene poorly, solved again with the gauge's
-    lights and the scene's own finish (:func:`virtual.with_gauge_lights`) and kept if
+    lights and the scene's own finish (:func:`gauge_finish.with_gauge_lights`) and kept if
     clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``),
     unless :func:`gauge_check.noisier_scene`. ``scene``: what ``result`` was solved from
     (None: a tiled run's, not tried). Returns (result, settings, finish and its fits or
@@ -550,11 +550,11 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
         residual_with_gauge_lights=None, brdf=None)
     try:  # the gauge's lights may not be measurable (a small or one-sided sphere)
         if scene is not None:
-            other, other_run, finish, lights = with_gauge_lights(
+            other, other_run, finish, lights, own = with_gauge_lights(
                 scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
                 camera=inputs.camera, progress=progress)
             record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
-                          brdf=finish[0].as_dict())
+                          brdf=finish[0].as_dict(), gauge_brdf=own.as_dict())
     except InputError as error:
         record["failed"] = str(error)
     if judge_finish(record, stacks.gauge_paths[0]):
@@ -585,7 +585,8 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
         return result, run, finish
     try:
         again = with_own_finish(corrected, lights, run, mask=mask, radius=inputs.virtual_radius,
-                                camera=inputs.camera, progress=progress)
+                                camera=inputs.camera, progress=progress,
+                                held_falloff=finish[0].falloff)
     except InputError as error:  # (a finish fit short of lit measurements)
         record.update(kept=False, failed=str(error))
         return result, run, finish

@@ -35,14 +35,13 @@ from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
 from .interreflection import SHADOW_BELOW
 from .lights import Lights
-from .matte_lights import matte_sphere_lights
 from .noise import estimate_noise, lit_measurements
 from .options import Options
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
 
 __all__ = ["corrected", "fit_scene_brdf", "match_along_rays", "matched_again", "rendered",
-           "view_corrected", "virtual_gauge", "with_gauge_lights", "without_highlight"]
+           "view_corrected", "virtual_gauge", "without_highlight"]
 
 # ---------------------------------------------------------------- tuning
 #: fit_scene_brdf fits this many times: at the normals of a Lambertian gauge,
@@ -108,7 +107,7 @@ VIEW_CHUNK = 2 ** 15
 
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
                   mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, progress: bool = False,
-                  camera: Camera | None = None
+                  camera: Camera | None = None, held_falloff: tuple | None = None
                   ) -> tuple[Gauge, Resolved, BRDF, list[dict] | None]:
     """The rendered gauge of a run with calibrated lights, and its settings.
 
@@ -129,6 +128,8 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
         Say each finish fit's result on stderr.
     camera : Camera, optional
         The lens the scene was photographed through (:func:`fit_scene_brdf`).
+    held_falloff : tuple of float, optional
+        A gauge's diffuse falloff the finish fit holds (:func:`fit_scene_brdf`).
 
     Returns
     -------
@@ -153,40 +154,24 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
         brdf, history = BRDF.lambert(), None
         if run.options.brdf == "fitted":
             brdf, history = fit_scene_brdf(scene, lights, run, mask=mask, radius=radius,
-                                           progress=progress, camera=camera)
+                                           progress=progress, camera=camera,
+                                           held_falloff=held_falloff)
         return rendered(lights, brdf, radius, scene.shape[3]), run, brdf, history
-
-
-def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
-                      run: Resolved, *, mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS,
-                      camera: Camera | None = None, progress: bool = False):
-    """The scene solved with a virtual gauge under the lights measured on a matte
-    gauge (:func:`colorps.matte_lights.matte_sphere_lights`, intensities relative
-    to its albedo) and of the scene's own fitted finish: for a gauge whose finish
-    is not the scene's. Through a lens (``camera``: scene and gauge photographed
-    with it) the sphere's normals come from the true rays, and a finish that
-    depends on the view has the scene matched again along each pixel's ray
-    (:func:`view_corrected`, which changes ``scene`` in place). Returns (the
-    :class:`~colorps.Reconstruction`, its settings, (the finish, its fits), the
-    lights)."""
-    lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
-                                    clip_level=run.gauge_levels[0], camera=camera)
-    return (*with_own_finish(scene, lights, run, mask=mask, radius=radius, camera=camera,
-                             progress=progress), lights)
 
 
 def with_own_finish(scene: np.ndarray, lights: Lights, run: Resolved, *, mask=None,
                     radius: float = DEFAULT_VIRTUAL_RADIUS, camera: Camera | None = None,
-                    progress: bool = False):
+                    progress: bool = False, held_falloff: tuple | None = None):
     """The scene solved with a virtual gauge under ``lights`` of its own fitted
     finish (:func:`virtual_gauge`, :func:`match_along_rays`): for another gauge's
     lights, or for measurements whose bounced light was taken out
     (:mod:`colorps.interreflection`: a finish fitted with it in takes some of
-    it for its falloff and highlight). Returns (the
+    it for its falloff and highlight), ``held_falloff`` held as
+    :func:`fit_scene_brdf` says. Returns (the
     :class:`~colorps.Reconstruction`, its settings, (the finish, its fits))."""
     virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
                                                   radius=radius, progress=progress,
-                                                  camera=camera)
+                                                  camera=camera, held_falloff=held_falloff)
     result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
                                  progress=progress)
     return result, settings, (brdf, fits)
@@ -241,8 +226,8 @@ def rendered(lights: Lights, brdf: BRDF, radius: float, bands: int) -> Gauge:
 
 def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = None, *,
                    mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, fits: int = SCENE_FITS,
-                   progress: bool = False, camera: Camera | None = None
-                   ) -> tuple[BRDF, list[dict]]:
+                   progress: bool = False, camera: Camera | None = None,
+                   held_falloff: tuple | None = None) -> tuple[BRDF, list[dict]]:
     """Fit the scene's finish from its own images, for a virtual gauge.
 
     Starting from a Lambertian virtual gauge, the scene is matched (light
@@ -290,6 +275,14 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         seen with rays up to 11 degrees off the axis matched 0.337 best, and
         its normals came out 0.64 degrees off against 0.49 at 0.3): with one,
         the plain finishes' roughness is only taken from the grid.
+    held_falloff : tuple of float, optional
+        A diffuse falloff (at :data:`~colorps.brdf.DIFFUSE_KNOTS`) every round
+        holds, the rest fitted: a gauge's of the scene's finish
+        (:func:`colorps.gauge_finish.with_gauge_lights`). Fitted on the
+        scene's estimated normals, the falloff trades with their tilt (a
+        Mitsuba plastic pot: its fit at the true normals 0.68 at grazing, at
+        the matched ones 1.14, and the normals 1.01 degrees off, leaning away
+        from the view).
 
     Returns
     -------
@@ -311,14 +304,17 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
                           stacklevel=2)
             return brdf, history
         rng = np.random.default_rng(0)
-        data, mask = _match_sample(data, mask, rng)
+        shape = data.shape[1:3]
+        data, mask, (rows, cols) = _match_sample(data, mask, rng)
+        views = None if camera is None else -camera.rays(cols, rows, shape)
         if progress:
             print(f"brdf: fitting the scene's finish ({fits} rounds of matching and fitting)",
                   file=sys.stderr)
         radius = min(radius, FIT_GAUGE_RADIUS)
         for round_ in range(fits):
             brdf, record = _fit_round(data, lights, brdf, quick, mask, radius, rng,
-                                      SETTLE_ROUNDS if round_ == 0 else 0)
+                                      SETTLE_ROUNDS if round_ == 0 else 0, held_falloff,
+                                      views)
             history.append(dict(round=round_ + 1, **record))
             if progress:
                 print(f"brdf fit {round_ + 1}/{fits}: {record['pixels']} pixels, RMS relative "
@@ -340,7 +336,7 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
                       f"one (median residual {fitted:.2f} vs {start:.2f} noise units): dropped, "
                       "the virtual gauge is Lambertian", file=sys.stderr)
             return BRDF.lambert(), history
-        data, mask = _match_sample(data, mask, rng, CANDIDATE_PIXELS)
+        data, mask, _ = _match_sample(data, mask, rng, CANDIDATE_PIXELS)
         scored: dict[BRDF, float] = {}
 
         def score(finish: BRDF) -> float:  # the scene's median match residual, once each
@@ -398,23 +394,25 @@ def _match_sample(data: np.ndarray, mask, rng: np.random.Generator,
                   size: int = FIT_MATCH_PIXELS):
     """The scene and mask the fit's rounds match: the masked pixels (up to
     ``size`` of them, a random sample past it) packed into a one-row stack (their
-    neighbours play no part in the fit; a white highlight's matches copy it)."""
+    neighbours play no part in the fit; a white highlight's matches copy it), and
+    where each pixel of it was ((ys, xs) of ``data``'s pixels, each (H', W'))."""
     chosen = np.ones(data.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
     ys, xs = np.nonzero(chosen)
     if len(ys) > size:
         pick = np.sort(rng.choice(len(ys), size, replace=False))
         ys, xs = ys[pick], xs[pick]
     elif mask is None:
-        return data, mask
-    return np.ascontiguousarray(data[:, ys, xs][:, None]), None
+        return data, mask, np.indices(data.shape[1:3])
+    return np.ascontiguousarray(data[:, ys, xs][:, None]), None, (ys[None], xs[None])
 
 
 def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, mask,
-               radius: float, rng: np.random.Generator, settle_rounds: int
-               ) -> tuple[BRDF, dict]:
+               radius: float, rng: np.random.Generator, settle_rounds: int,
+               held_falloff: tuple | None, views: np.ndarray | None) -> tuple[BRDF, dict]:
     """Match the scene against the gauge rendered with ``brdf``; fit a finish to a
-    sample of the solved pixels at their normals (``settle_rounds`` as
-    :func:`colorps.brdf.fit_brdf` takes it). Returns it and what to record."""
+    sample of the solved pixels at their normals (``settle_rounds``,
+    ``held_falloff`` and ``views``, each pixel's of ``data`` through a lens, as
+    :func:`colorps.brdf.fit_brdf` takes them). Returns it and what to record."""
     c = data.shape[-1]
     result = _matched(data, lights, brdf, quick, mask, radius)
     ys, xs = np.nonzero(result.solved)
@@ -429,7 +427,9 @@ def _fit_round(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, ma
     usable = _usable(observed, settings.dark_level, settings.clip_level)
     colours = lights.as_lighting(c).colours[:, 0, :]  # (m, c), checked against the bands
     fitted, rms = fit_brdf(observed, result.normals[ys, xs].astype(np.float64),
-                           lights.directions, colours, usable, settle_rounds=settle_rounds)
+                           lights.directions, colours, usable, settle_rounds=settle_rounds,
+                           held_falloff=held_falloff,
+                           views=None if views is None else views[ys, xs])
     return fitted, dict(pixels=len(ys),
                         # Not run-scaled: scaled, every finish's median is about 1.
                         match_residual_median=result.stats.residual_median_noise_units,

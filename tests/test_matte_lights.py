@@ -209,12 +209,12 @@ def test_lights_that_cannot_be_measured_leave_the_gauges_result(rough_capture, t
                                                                 capsys, monkeypatch):
     """The way out failing (here made to) is said, and the run ends with the gauge's
     result, not an error."""
-    import colorps.virtual as virtual
+    import colorps.gauge_finish as gauge_finish
 
     def unmeasurable(*args, **kwargs):
         raise InputError("gauge_03.exr: only 12 lit pixels on the matte sphere")
 
-    monkeypatch.setattr(virtual, "matte_sphere_lights", unmeasurable)
+    monkeypatch.setattr(gauge_finish, "matte_sphere_lights", unmeasurable)
     folder, _, _, _ = rough_capture
     assert _reconstruct(folder, tmp_path / "out", "--gauge", str(folder / "gauge_*.exr"),
                         "--sphere", "auto") == 0
@@ -340,3 +340,35 @@ def test_another_finish_through_a_lens_is_solved(rough_capture_through_a_lens, t
     assert main(["calibrate-lights", str(folder / "gauge_*.exr"), "--sphere", "auto",
                  "--camera", "300", "--out", str(tmp_path / "mirror.txt")]) == 1
     assert "for a matte sphere (--matte)" in capsys.readouterr().err
+
+
+def test_the_gauges_own_finish_is_fitted_at_its_known_normals():
+    """A coated gauge (a falloff darker towards grazing and a GGX lobe): its finish
+    fitted at its known normals gives the falloff it was rendered with, which a
+    scene's fit then holds whatever its normals (on estimated ones the falloff
+    trades with their tilt), and its lights' intensities come out as rendered."""
+    from colorps import BRDF, Gauge, Lights
+    from colorps.brdf_fit import fit_brdf
+    from colorps.gauge_finish import gauge_finish
+
+    lighting, colours = coloured_lights(16)
+    finish = BRDF(falloff=(0.6, 0.68, 0.75, 0.82, 0.9, 0.95, 0.99, 1.0), specular=(0.05,),
+                  alpha=0.3)
+    gauge = Gauge.from_sphere((130, 140), *CENTRE, RADIUS, rim_margin=1.0, albedo=0.8)
+    ys, xs = np.nonzero(gauge.mask)
+    stack = np.zeros((16, 130, 140, 3), np.float32)
+    stack[:, ys, xs] = finish.shade(gauge.normals[ys, xs], lighting.directions[:, 0], colours,
+                                    albedo=np.full((len(ys), 3), 0.8))
+    lights = Lights(lighting.directions[:, 0], colours * 1.1)  # intensities a little off
+    fitted, measured = gauge_finish(stack, gauge, lights)
+    assert np.abs(np.array(fitted.falloff) - finish.falloff).max() < 0.02, fitted.falloff
+    assert np.abs(measured.intensities / colours - 1).max() < 0.01
+    # A scene's fit at normals about 3 degrees off keeps the held falloff.
+    rng = np.random.default_rng(5)
+    some = rng.choice(len(ys), 1500, replace=False)
+    tilted = gauge.normals[ys[some], xs[some]] + rng.normal(0, 0.05, (1500, 3))
+    tilted /= np.linalg.norm(tilted, axis=1, keepdims=True)
+    observed = stack[:, ys[some], xs[some]].astype(np.float64)
+    held, _ = fit_brdf(observed, tilted, lighting.directions[:, 0], colours, observed > 0,
+                       held_falloff=fitted.falloff)
+    assert np.abs(np.array(held.falloff) - fitted.falloff).max() < 1e-3
