@@ -338,7 +338,7 @@ def test_a_dropped_finish_is_said(lights, monkeypatch, capsys):
 
     rounds = iter([1.00, 1.01])  # the median residual of each round's starting gauge
 
-    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds):
+    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds, *held):
         return BRDF(specular=(0.1,), alpha=0.3), dict(pixels=1, rms_relative=0.1,
                                                       match_residual_median=next(rounds))
 
@@ -440,7 +440,7 @@ def test_a_simpler_finish_replaces_the_fit_only_where_clearly_better(lights, mon
                   alpha=0.3, roughness=0.2)
     rounds = iter([2.0, 1.0])  # Lambert's, then the first fit's: the fit is kept
 
-    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds):
+    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds, *held):
         return fitted, dict(pixels=1, rms_relative=0.1, match_residual_median=next(rounds))
 
     def fake_match(data, lights, brdf, quick, mask, radius):
@@ -478,7 +478,7 @@ def test_a_plain_finish_between_the_grids_values_is_found(lights, monkeypatch, c
     rounds = iter([2.0, 1.0])
     tried = []
 
-    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds):
+    def fake_round(data, lights, brdf, quick, mask, radius, rng, settle_rounds, *held):
         return fitted, dict(pixels=1, rms_relative=0.1, match_residual_median=next(rounds))
 
     def fake_match(data, lights, brdf, quick, mask, radius):
