@@ -538,13 +538,12 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
                        mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
     """A run whose matte gauge explains its scene poorly, solved again with the gauge's
     lights and the scene's own finish (:func:`gauge_finish.with_gauge_lights`) and kept if
-    clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``),
-    unless :func:`gauge_check.noisier_scene`. ``scene``: what ``result`` was solved from
-    (None: a tiled run's, not tried). Returns (result, settings, finish and its fits or
-    None, the gauge's lights or None)."""
-    if scene is not None and noisier_scene(scene, mask, result.stats, checked,
-                                           stacks.scene_paths[0]):
-        return result, run, None, None
+    clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``;
+    for a scene :func:`gauge_check.noisier_scene` than its gauge, when its own finish
+    depends on the view). ``scene``: what ``result`` was solved from (None: a tiled
+    run's, not tried). Returns (result, settings, finish and its fits or None, the
+    gauge's lights or None)."""
+    noisier = scene is not None and noisier_scene(scene, mask, result.stats, checked)
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
         residual_with_gauge_lights=None, brdf=None)
@@ -557,7 +556,9 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
                           brdf=finish[0].as_dict(), gauge_brdf=own.as_dict())
     except InputError as error:
         record["failed"] = str(error)
-    if judge_finish(record, stacks.gauge_paths[0]):
+    if judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
+                    noisier=checked["scene_noise_over_gauge"] if noisier else None,
+                    finish=finish[0] if record["brdf"] else None):
         return other, other_run, finish, lights
     return result, run, None, None
 

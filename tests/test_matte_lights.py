@@ -240,9 +240,9 @@ def test_no_finish_hint_where_the_gauge_explains_the_scene(tmp_path, capsys):
 def test_a_scene_noisier_than_its_gauge_is_not_taken_for_another_finish(tmp_path, capsys):
     """A Lambertian scene with ten times its gauge's noise (a path-traced scene's
     bounced light against a lone sphere's noise-free render) matches at about 10
-    noise units: the finish check alone would blame the finish (and, on a glossy
-    pot rendered by Mitsuba 3, took the normals from 0.82 to 3.16 degrees). The
-    scene's own scatter explains it: said so, and the gauge's result kept."""
+    noise units: the finish check alone would blame the finish. The scene's own
+    scatter explains it, and its own fitted finish (Lambertian) has no highlight
+    nor roughness: said so, and the gauge's result kept."""
     scene, _, _ = smiley_capture(tmp_path, 0.0, scene_noise=0.02)
     assert _reconstruct(tmp_path, tmp_path / "out", "--gauge", str(tmp_path / "gauge_*.exr"),
                         "--sphere", "auto") == 0
@@ -251,12 +251,39 @@ def test_a_scene_noisier_than_its_gauge_is_not_taken_for_another_finish(tmp_path
     assert "Solved instead" not in said and "did no better" not in said
     record = json.loads((tmp_path / "out" / "report.json").read_text())
     checked = record["gauge_check"]
-    assert "finish" not in checked and record["brdf"] is None
+    assert checked["finish"]["taken"] is False and record["brdf"] is None
+    assert "has no highlight nor roughness" in said
     assert 7 < checked["scene_noise_over_gauge"] < 13
     scale = record["statistics"]["model_scale"]
     assert finish_differs(scale, {**checked, "scene_noise_over_gauge": None})  # alone: yes
     assert not finish_differs(scale, checked)
 
+
+
+def test_a_glossy_scene_noisier_than_its_gauge_takes_its_own_finish(tmp_path, capsys):
+    """The same noisy scene under a white GGX coat (as a path tracer renders a
+    plastic pot against a lone sphere): the residuals cannot tell, but its own
+    fitted finish has a highlight the matte gauge has not, so that solution is
+    taken, and it is closer to the truth than the gauge's."""
+    from colorps.finishes import Gloss
+
+    lighting, colours = coloured_lights(16)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lighting, noise=0.02, seed=2,
+                         gloss=Gloss(0.04, model="ggx", alpha=0.3))
+    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
+        write_image(tmp_path / f"scene_{k:02d}.exr", image)
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    gauge = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto"]
+    assert _reconstruct(tmp_path, tmp_path / "gauge_only", *gauge, "--no-finish-check") == 0
+    assert _reconstruct(tmp_path, tmp_path / "out", *gauge) == 0
+    said = capsys.readouterr().err
+    assert "noisier than its gauge" in said and "Solved instead" in said
+    checked = json.loads((tmp_path / "out" / "report.json").read_text())["gauge_check"]
+    assert checked["scene_noise_over_gauge"] > 2 and checked["finish"]["taken"]
+    assert max(checked["finish"]["brdf"]["specular"]) > 0.01
+    assert _error(tmp_path / "out", scene) < 0.8 * _error(tmp_path / "gauge_only", scene)
 
 FOCAL = 250.0  # pixels: rays up to 12 degrees off the axis on the gauge's rim
 
