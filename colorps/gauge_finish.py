@@ -9,12 +9,13 @@ plastic pot (a GGX coat of alpha 0.3 on a textured base, direct light, its
 gauge of the same finish), solved with the gauge's lights: its fit at the
 true normals 0.68 at grazing, at the matched ones 1.14, and the normals 1.01
 degrees off (mean and median), leaning away from the view; with the falloff
-fitted on the gauge (:func:`gauge_finish`) and held, 0.19 / 0.10.
+fitted on the gauge (:func:`gauge_finish`) and held, 0.18 / 0.10.
 
 The lights are a matte sphere's fit
 (:func:`colorps.matte_lights.matte_sphere_lights`), which takes up some of a
-glossier gauge's falloff and highlight. Fitting each light's direction again
-under the gauge's finish, alternately with it, gave 0.24 / 0.15 on that pot,
+glossier gauge's falloff and highlight: their intensities are fitted again
+under the gauge's finish (0.24 / 0.15 without). Fitting each light's direction
+again too, alternately with the finish, gave 0.24 / 0.15 on that pot,
 and on a Lambertian gauge moved directions the matte fit had within 0.04
 degrees 0.1-1.4 degrees away (each pixel's albedo free, as a match leaves it;
 held at the gauge's, a coat's darkening towards the rim tilted them): not done.
