@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ENCODING_RATIO", "POOR_FIT", "as_linear", "check_gauge", "check_lights",
            "finish_differs", "judge_finish", "lambertian_fit", "lens_hint", "lights_fit",
-           "noisier_scene", "sphere_fit"]
+           "noisier_scene", "shows_finish", "sphere_fit"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -456,8 +456,7 @@ def judge_finish(record: dict, first_file: Path, *, noisier: float | None = None
     told how to, by hand."""
     gauge, own = record["residual_with_gauge"], record["residual_with_gauge_lights"]
     if noisier is not None:
-        record["taken"] = bool(own is not None and finish is not None and (
-            finish.roughness > 0.0 or max(finish.specular) >= NOISY_SCENE_HIGHLIGHT))
+        record["taken"] = bool(own is not None and finish is not None and shows_finish(finish))
         _say_noisier(record, noisier, first_file)
         return record["taken"]
     record["taken"] = bool(own is not None and own < CLEARLY_BETTER * gauge)
@@ -486,6 +485,12 @@ def judge_finish(record: dict, first_file: Path, *, noisier: float | None = None
     return record["taken"]
 
 
+def shows_finish(finish) -> bool:
+    """Whether a scene's fitted finish (a :class:`~colorps.brdf.BRDF`) has what a
+    matte gauge lacks: a roughness, or a highlight of NOISY_SCENE_HIGHLIGHT."""
+    return finish.roughness > 0.0 or max(finish.specular) >= NOISY_SCENE_HIGHLIGHT
+
+
 def _say_noisier(record: dict, ratio: float, first_file: Path) -> None:
     """Warn of a scene noisier than its gauge, and of what :func:`judge_finish` did."""
     said = (f"the scene matches the gauge at {record['residual_with_gauge']:.1f} noise "
@@ -499,8 +504,7 @@ def _say_noisier(record: dict, ratio: float, first_file: Path) -> None:
                  "not. Solved instead with the lights measured on the "
                  "gauge and that finish; report.json's gauge_check.finish says so")
     else:
-        why = "could not be fitted" if record["residual_with_gauge_lights"] is None else \
-            "has no highlight nor roughness"
+        why = "could not be fitted" if "failed" in record else "has no highlight nor roughness"
         said += (f", not of another finish (its own fitted finish {why}): the gauge's result "
                  "is kept. Residuals and quality.exr are in the gauge's noise units; "
                  "report.json's gauge_check.scene_noise_over_gauge says so")

@@ -38,7 +38,7 @@ from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge, parse_albedo
 from .lights import Lights
 from .matte_lights import matte_sphere_lights
 from .resolve import Resolved
-from .virtual import with_own_finish
+from .virtual import match_along_rays, virtual_gauge
 
 __all__ = ["gauge_finish", "with_gauge_lights"]
 
@@ -126,24 +126,32 @@ def _scale(observed, model, usable, axis: int) -> np.ndarray:
 
 def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
                       run: Resolved, *, mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS,
-                      camera: Camera | None = None, progress: bool = False):
+                      camera: Camera | None = None, progress: bool = False, wanted=None):
     """The scene solved with a virtual gauge under the lights measured on the gauge
     and of the scene's own fitted finish: for a gauge whose match explains the
     scene poorly (a finish not the scene's, or a white highlight on a coloured
     scene, which no grey gauge's signatures hold). The lights are a matte
     sphere's fit (:func:`colorps.matte_lights.matte_sphere_lights`, intensities
     relative to its albedo), their intensities fitted again under the gauge's own
-    finish, whose diffuse falloff the scene's fit holds (:func:`gauge_finish`). Through a lens
-    (``camera``: scene and gauge photographed with it) the sphere's normals come
-    from the true rays, and a finish that depends on the view has the scene
-    matched again along each pixel's ray (:func:`colorps.virtual.view_corrected`,
-    which changes ``scene`` in place). Returns (the
-    :class:`~colorps.Reconstruction`, its settings, (the finish, its fits), the
-    lights, the gauge's finish)."""
+    finish, whose diffuse falloff the scene's fit holds (:func:`gauge_finish`).
+    Through a lens (``camera``: scene and gauge photographed with it) the
+    sphere's normals come from the true rays, and a finish that depends on the
+    view has the scene matched again along each pixel's ray
+    (:func:`colorps.virtual.view_corrected`, which changes ``scene`` in place).
+    Returns (the :class:`~colorps.Reconstruction`, its settings, (the finish,
+    its fits), the lights, the gauge's finish); the Reconstruction and its
+    settings are None when ``wanted`` (a predicate on the fitted finish) says the
+    scene need not be matched with it."""
     lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
                                     clip_level=run.gauge_levels[0], camera=camera)
     own, lights = gauge_finish(gauge_stack, gauge, lights, camera=camera,
                                clip_level=run.gauge_levels[0],
                                dark_level=run.options.dark_level)
-    return (*with_own_finish(scene, lights, run, mask=mask, radius=radius, camera=camera,
-                             progress=progress, held_falloff=own.falloff), lights, own)
+    virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask, radius=radius,
+                                                  progress=progress, camera=camera,
+                                                  held_falloff=own.falloff)
+    if wanted is not None and not wanted(brdf):
+        return None, None, (brdf, fits), lights, own
+    result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
+                                 progress=progress)
+    return result, settings, (brdf, fits), lights, own

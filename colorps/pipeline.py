@@ -41,6 +41,7 @@ from .gauge_check import (
     judge_finish,
     lens_hint,
     noisier_scene,
+    shows_finish,
 )
 from .gauge_finish import with_gauge_lights
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
@@ -551,9 +552,11 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
         if scene is not None:
             other, other_run, finish, lights, own = with_gauge_lights(
                 scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
-                camera=inputs.camera, progress=progress)
-            record.update(residual_with_gauge_lights=other.stats.residual_median_noise_units,
-                          brdf=finish[0].as_dict(), gauge_brdf=own.as_dict())
+                camera=inputs.camera, progress=progress,
+                wanted=shows_finish if noisier else None)
+            record.update(brdf=finish[0].as_dict(), gauge_brdf=own.as_dict())
+            if other is not None:
+                record["residual_with_gauge_lights"] = other.stats.residual_median_noise_units
     except InputError as error:
         record["failed"] = str(error)
     if judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
