@@ -38,7 +38,7 @@ from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge, parse_albedo
 from .lights import Lights
 from .matte_lights import matte_sphere_lights
 from .resolve import Resolved
-from .virtual import match_along_rays, virtual_gauge
+from .virtual import with_own_finish
 
 __all__ = ["gauge_finish", "with_gauge_lights"]
 
@@ -140,18 +140,12 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
     (:func:`colorps.virtual.view_corrected`, which changes ``scene`` in place).
     Returns (the :class:`~colorps.Reconstruction`, its settings, (the finish,
     its fits), the lights, the gauge's finish); the Reconstruction and its
-    settings are None when ``wanted`` (a predicate on the fitted finish) says the
-    scene need not be matched with it."""
+    settings are None when ``wanted`` says so (:func:`colorps.virtual.with_own_finish`)."""
     lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
                                     clip_level=run.gauge_levels[0], camera=camera)
     own, lights = gauge_finish(gauge_stack, gauge, lights, camera=camera,
                                clip_level=run.gauge_levels[0],
                                dark_level=run.options.dark_level)
-    virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask, radius=radius,
-                                                  progress=progress, camera=camera,
-                                                  held_falloff=own.falloff)
-    if wanted is not None and not wanted(brdf):
-        return None, None, (brdf, fits), lights, own
-    result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
-                                 progress=progress)
-    return result, settings, (brdf, fits), lights, own
+    return (*with_own_finish(scene, lights, run, mask=mask, radius=radius, camera=camera,
+                             progress=progress, held_falloff=own.falloff, wanted=wanted),
+            lights, own)

@@ -541,7 +541,7 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
     lights and the scene's own finish (:func:`gauge_finish.with_gauge_lights`) and kept if
     clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``;
     for a scene :func:`gauge_check.noisier_scene` than its gauge, when its own finish
-    depends on the view). ``scene``: what ``result`` was solved from (None: a tiled
+    :func:`gauge_check.shows_finish`, and only then matched with it). ``scene``: what ``result`` was solved from (None: a tiled
     run's, not tried). Returns (result, settings, finish and its fits or None, the
     gauge's lights or None)."""
     noisier = scene is not None and noisier_scene(scene, mask, result.stats, checked)

@@ -161,17 +161,22 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
 
 def with_own_finish(scene: np.ndarray, lights: Lights, run: Resolved, *, mask=None,
                     radius: float = DEFAULT_VIRTUAL_RADIUS, camera: Camera | None = None,
-                    progress: bool = False, held_falloff: tuple | None = None):
+                    progress: bool = False, held_falloff: tuple | None = None,
+                    wanted=None):
     """The scene solved with a virtual gauge under ``lights`` of its own fitted
     finish (:func:`virtual_gauge`, :func:`match_along_rays`): for another gauge's
     lights, or for measurements whose bounced light was taken out
     (:mod:`colorps.interreflection`: a finish fitted with it in takes some of
     it for its falloff and highlight), ``held_falloff`` held as
     :func:`fit_scene_brdf` says. Returns (the
-    :class:`~colorps.Reconstruction`, its settings, (the finish, its fits))."""
+    :class:`~colorps.Reconstruction`, its settings, (the finish, its fits)); the
+    first two are None when ``wanted`` (a predicate on the fitted finish) says
+    the scene need not be matched with it."""
     virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
                                                   radius=radius, progress=progress,
                                                   camera=camera, held_falloff=held_falloff)
+    if wanted is not None and not wanted(brdf):
+        return None, None, (brdf, fits)
     result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
                                  progress=progress)
     return result, settings, (brdf, fits)
