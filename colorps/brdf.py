@@ -38,14 +38,15 @@ the finish itself.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .errors import InputError
 from .finishes import oren_nayar_factor
 
-__all__ = ["BRDF", "DIFFUSE_KNOTS", "best_normals", "ggx_lobe", "shading_angles"]
+__all__ = ["BRDF", "DIFFUSE_KNOTS", "best_normals", "coat_transmission", "ggx_lobe",
+           "shading_angles"]
 
 # ---------------------------------------------------------------- tuning
 #: Cosines of incidence at which the diffuse falloff g is a free value (linear
@@ -58,6 +59,9 @@ FRESNEL_F0 = 0.04
 #: A highlight peaking under this fraction of the diffuse albedo is too faint
 #: for the view direction to matter (:attr:`BRDF.depends_on_view`).
 VISIBLE_PEAK = 0.01
+#: coat_transmission averages the highlight over COAT_STEPS shares of its
+#: half-vectors by twice as many azimuths (within 0.001 of a 4 times finer grid).
+COAT_STEPS = 64
 #: best_normals takes NORMAL_STEPS damped Gauss-Newton steps of at most
 #: MAX_NORMAL_STEP radians, derivatives over NORMAL_EPS radians.
 NORMAL_STEPS = 5
@@ -148,6 +152,22 @@ class BRDF:
     def diffuse(self) -> BRDF:
         """The finish without its highlight."""
         return BRDF(self.falloff, roughness=self.roughness)
+
+    def coated_over(self, held: BRDF) -> BRDF | None:
+        """The finish with ``held``'s falloff times the light its own clear coat
+        keeps from the base at each incidence, beyond what ``held``'s coat keeps
+        (:func:`coat_transmission`): for a falloff measured on a gauge whose
+        coat, if any, is not this finish's. None without a white highlight, or
+        when the two coats' losses differ by under VISIBLE_PEAK."""
+        if not self.has_white_highlight:
+            return None
+        knots = np.array(DIFFUSE_KNOTS)
+        loss = coat_transmission(knots, self.alpha)
+        if held.has_white_highlight:
+            loss /= coat_transmission(knots, held.alpha)
+        if np.abs(loss - 1.0).max() < VISIBLE_PEAK:
+            return None
+        return replace(self, falloff=tuple(np.asarray(held.falloff) * loss))
 
     def bands(self, count: int) -> np.ndarray:
         """(count,) highlight strength per band."""
@@ -288,6 +308,62 @@ def ggx_lobe(angles: tuple, alpha: float) -> np.ndarray:
     lobe *= 2.0 * cosine / (cosine + np.sqrt(a2 + (1.0 - a2) * cosine ** 2))
     lobe /= 2.0 * (cos_view + np.sqrt(a2 + (1.0 - a2) * cos_view ** 2))
     return lobe
+
+
+def coat_transmission(cosines, alpha: float) -> np.ndarray:
+    """Share of a light let into a coated base, relative to normal incidence.
+
+    A clear dielectric coat reflects part of each light as its highlight
+    (:func:`ggx_lobe`, Fresnel reflectance FRESNEL_F0 at normal incidence) and
+    lets the rest into the diffuse base beneath: 1 minus the highlight's
+    directional albedo at each cosine of incidence (single scattering, as in
+    Mitsuba's and pbrt's coated plastics), over its value at normal incidence.
+    A coated finish's diffuse falloff is the uncoated one times this; a
+    renderer that weights its layers by the view alone has none of it.
+
+    Parameters
+    ----------
+    cosines : array_like
+        Cosines of incidence (0 to 1).
+    alpha : float
+        The coat's GGX roughness.
+
+    Returns
+    -------
+    ndarray of float64
+        1 at normal incidence, falling towards grazing.
+
+    Examples
+    --------
+    >>> from colorps.brdf import coat_transmission
+    >>> coat_transmission([0.0, 0.5, 1.0], 0.3).round(2).tolist()
+    [0.88, 0.98, 1.0]
+    """
+    cosines = np.asarray(cosines, dtype=np.float64)
+    a2 = alpha * alpha
+    # Half-vectors on a grid of equal shares of D(h) (n . h), the GGX sampling
+    # map: the albedo is the mean of F G1(l) G1(v) (v . h) / ((n . v)(n . h)).
+    share = (np.arange(COAT_STEPS) + 0.5) / COAT_STEPS
+    cos_half = np.sqrt((1.0 - share) / (1.0 + (a2 - 1.0) * share))[:, None]
+    turn = (np.arange(2 * COAT_STEPS) + 0.5) * np.pi / COAT_STEPS
+    sin_half = np.sqrt(1.0 - cos_half ** 2)
+    half = np.stack(np.broadcast_arrays(sin_half * np.cos(turn), sin_half * np.sin(turn),
+                                        cos_half), axis=-1).reshape(-1, 3)
+
+    def smith(cosine):  # G1(cosine) / cosine, finite at grazing
+        return 2.0 / (cosine + np.sqrt(a2 + (1.0 - a2) * cosine ** 2))
+
+    def reflected(cosine):  # the highlight's directional albedo at this incidence
+        view = np.array([np.sqrt(max(0.0, 1.0 - cosine ** 2)), 0.0, cosine])
+        v_dot_h = np.maximum(half @ view, 0.0)
+        light_z = 2.0 * v_dot_h * half[:, 2] - cosine  # the mirror of the view about h
+        fresnel = FRESNEL_F0 + (1.0 - FRESNEL_F0) * (1.0 - v_dot_h) ** 5
+        value = fresnel * smith(np.maximum(light_z, 0.0)) * np.maximum(light_z, 0.0) * \
+            smith(cosine) * v_dot_h / half[:, 2]
+        return float(np.where(light_z > 0.0, value, 0.0).mean())
+
+    let_in = np.array([1.0 - reflected(float(c)) for c in cosines.ravel()])
+    return (let_in / (1.0 - reflected(1.0))).reshape(cosines.shape)
 
 
 def best_normals(obs: np.ndarray, weight: np.ndarray, normals: np.ndarray, brdf: BRDF,

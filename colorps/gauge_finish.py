@@ -147,5 +147,5 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
                                clip_level=run.gauge_levels[0],
                                dark_level=run.options.dark_level)
     return (*with_own_finish(scene, lights, run, mask=mask, radius=radius, camera=camera,
-                             progress=progress, held_falloff=own.falloff, wanted=wanted),
+                             progress=progress, held_finish=own, wanted=wanted),
             lights, own)

@@ -590,7 +590,7 @@ def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
     try:
         again = with_own_finish(corrected, lights, run, mask=mask, radius=inputs.virtual_radius,
                                 camera=inputs.camera, progress=progress,
-                                held_falloff=finish[0].falloff)
+                                held_finish=finish[0])
     except InputError as error:  # (a finish fit short of lit measurements)
         record.update(kept=False, failed=str(error))
         return result, run, finish

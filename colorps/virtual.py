@@ -107,7 +107,7 @@ VIEW_CHUNK = 2 ** 15
 
 def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved, *,
                   mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, progress: bool = False,
-                  camera: Camera | None = None, held_falloff: tuple | None = None
+                  camera: Camera | None = None, held_finish: BRDF | None = None
                   ) -> tuple[Gauge, Resolved, BRDF, list[dict] | None]:
     """The rendered gauge of a run with calibrated lights, and its settings.
 
@@ -128,8 +128,9 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
         Say each finish fit's result on stderr.
     camera : Camera, optional
         The lens the scene was photographed through (:func:`fit_scene_brdf`).
-    held_falloff : tuple of float, optional
-        A gauge's diffuse falloff the finish fit holds (:func:`fit_scene_brdf`).
+    held_finish : BRDF, optional
+        A gauge's finish, whose diffuse falloff the finish fit holds
+        (:func:`fit_scene_brdf`).
 
     Returns
     -------
@@ -155,26 +156,26 @@ def virtual_gauge(scene: np.ndarray, lights: Lights, options: Options | Resolved
         if run.options.brdf == "fitted":
             brdf, history = fit_scene_brdf(scene, lights, run, mask=mask, radius=radius,
                                            progress=progress, camera=camera,
-                                           held_falloff=held_falloff)
+                                           held_finish=held_finish)
         return rendered(lights, brdf, radius, scene.shape[3]), run, brdf, history
 
 
 def with_own_finish(scene: np.ndarray, lights: Lights, run: Resolved, *, mask=None,
                     radius: float = DEFAULT_VIRTUAL_RADIUS, camera: Camera | None = None,
-                    progress: bool = False, held_falloff: tuple | None = None,
+                    progress: bool = False, held_finish: BRDF | None = None,
                     wanted=None):
     """The scene solved with a virtual gauge under ``lights`` of its own fitted
     finish (:func:`virtual_gauge`, :func:`match_along_rays`): for another gauge's
     lights, or for measurements whose bounced light was taken out
     (:mod:`colorps.interreflection`: a finish fitted with it in takes some of
-    it for its falloff and highlight), ``held_falloff`` held as
+    it for its falloff and highlight), ``held_finish``'s falloff held as
     :func:`fit_scene_brdf` says. Returns (the
     :class:`~colorps.Reconstruction`, its settings, (the finish, its fits)); the
     first two are None when ``wanted`` (a predicate on the fitted finish) says
     the scene need not be matched with it."""
     virtual, settings, brdf, fits = virtual_gauge(scene, lights, run, mask=mask,
                                                   radius=radius, progress=progress,
-                                                  camera=camera, held_falloff=held_falloff)
+                                                  camera=camera, held_finish=held_finish)
     if wanted is not None and not wanted(brdf):
         return None, None, (brdf, fits)
     result, _ = match_along_rays(scene, virtual, settings, lights, brdf, camera, mask=mask,
@@ -232,7 +233,7 @@ def rendered(lights: Lights, brdf: BRDF, radius: float, bands: int) -> Gauge:
 def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = None, *,
                    mask=None, radius: float = DEFAULT_VIRTUAL_RADIUS, fits: int = SCENE_FITS,
                    progress: bool = False, camera: Camera | None = None,
-                   held_falloff: tuple | None = None) -> tuple[BRDF, list[dict]]:
+                   held_finish: BRDF | None = None) -> tuple[BRDF, list[dict]]:
     """Fit the scene's finish from its own images, for a virtual gauge.
 
     Starting from a Lambertian virtual gauge, the scene is matched (light
@@ -280,14 +281,16 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         seen with rays up to 11 degrees off the axis matched 0.337 best, and
         its normals came out 0.64 degrees off against 0.49 at 0.3): with one,
         the plain finishes' roughness is only taken from the grid.
-    held_falloff : tuple of float, optional
-        A diffuse falloff (at :data:`~colorps.brdf.DIFFUSE_KNOTS`) every round
-        holds, the rest fitted: a gauge's of the scene's finish
-        (:func:`colorps.gauge_finish.with_gauge_lights`). Fitted on the
+    held_finish : BRDF, optional
+        A finish whose diffuse falloff every round holds, the rest fitted: a
+        gauge's (:func:`colorps.gauge_finish.with_gauge_lights`). Fitted on the
         scene's estimated normals, the falloff trades with their tilt (a
         Mitsuba plastic pot: its fit at the true normals 0.68 at grazing, at
         the matched ones 1.14, and the normals 1.01 degrees off, leaning away
-        from the view).
+        from the view). A scene with a clear coat the held finish lacks
+        (a white highlight) is also matched with that falloff under the coat's
+        loss (:meth:`BRDF.coated_over`), a candidate like the simpler ones: a
+        plastic pot on a matte gauge, 2.85 -> 2.19 degrees median.
 
     Returns
     -------
@@ -318,7 +321,8 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         radius = min(radius, FIT_GAUGE_RADIUS)
         for round_ in range(fits):
             brdf, record = _fit_round(data, lights, brdf, quick, mask, radius, rng,
-                                      SETTLE_ROUNDS if round_ == 0 else 0, held_falloff,
+                                      SETTLE_ROUNDS if round_ == 0 else 0,
+                                      held_finish and held_finish.falloff,
                                       views)
             history.append(dict(round=round_ + 1, **record))
             if progress:
@@ -349,7 +353,7 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
                 scored[finish] = _match_residual(data, lights, finish, quick, mask, radius)
             return scored[finish]
 
-        for finish in _simpler_finishes(brdf):
+        for finish in _simpler_finishes(brdf, held_finish):
             score(finish)
         plain = {f.roughness: value for f, value in scored.items()
                  if f == BRDF(roughness=f.roughness)}
@@ -361,19 +365,22 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         history[-1]["candidates"] = [dict(match_residual_median=value, **finish.as_dict())
                                      for finish, value in scored.items()]
         if progress and chosen != brdf:
-            print(f"brdf: a simpler finish matched the scene clearly better than the fitted "
-                  f"one (median residual {scored[chosen]:.2f} vs {scored[brdf]:.2f} noise "
-                  f"units): falloff {'fitted' if chosen.falloff == brdf.falloff else 'Lambertian'}"
-                  f", highlight {max(chosen.specular):.4f}", file=sys.stderr)
+            print(f"brdf: another finish matched the scene clearly better than the fitted "
+                  f"one (median residual {scored[chosen]:.2f} vs {scored[brdf]:.2f} noise units)"
+                  f": falloff {chosen.falloff[0]:.2f} at grazing incidence, highlight "
+                  f"{max(chosen.specular):.4f}", file=sys.stderr)
         return chosen, history
 
 
-def _simpler_finishes(brdf: BRDF) -> list[BRDF]:
-    """The fitted finish and the simpler ones :func:`fit_scene_brdf` compares it
-    with (SIMPLER_GAIN; not Lambert itself, which the kept fit already beat)."""
+def _simpler_finishes(brdf: BRDF, held: BRDF | None = None) -> list[BRDF]:
+    """The fitted finish and the others :func:`fit_scene_brdf` compares it with
+    (SIMPLER_GAIN; not Lambert itself, which the kept fit already beat): simpler
+    ones, and the held falloff under the fit's coat (:meth:`BRDF.coated_over`)."""
     flat = dataclasses.replace(brdf, falloff=BRDF.lambert().falloff)
     plain = [BRDF(roughness=r) for r in roughness_bracket(brdf.roughness)]
-    return list(dict.fromkeys(f for f in (brdf, flat, *plain) if not f.is_lambert))
+    coated = [] if held is None else [brdf.coated_over(held)]
+    return list(dict.fromkeys(f for f in (brdf, flat, *plain, *coated)
+                              if f is not None and not f.is_lambert))
 
 
 def _matched(data: np.ndarray, lights: Lights, brdf: BRDF, quick: Resolved, mask,

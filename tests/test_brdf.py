@@ -148,6 +148,43 @@ def test_a_strong_ggx_coat_is_fitted_and_kept(lights, monkeypatch):
     assert errors["sampled"] < errors["fitted"] + 0.1, errors
 
 
+def test_a_coats_transmission_is_one_minus_its_highlights_albedo():
+    """coat_transmission against the highlight (ggx_lobe) summed over a fine grid
+    of light directions, for a lobe wide enough for such a grid."""
+    from colorps.brdf import FRESNEL_F0, coat_transmission, ggx_lobe
+
+    alpha, steps = 0.4, 600
+    lit = (np.arange(steps) + 0.5) / steps
+    turn = (np.arange(2 * steps) + 0.5) * np.pi / steps
+    lit, turn = (a.ravel() for a in np.meshgrid(lit, turn, indexing="ij"))
+    light = np.stack([np.sqrt(1 - lit ** 2) * np.cos(turn),
+                      np.sqrt(1 - lit ** 2) * np.sin(turn), lit], axis=1)
+    cosines = np.array([0.02, 0.2, 0.5, 0.8, 1.0])
+    let_in = []
+    for cosine in cosines:
+        view = np.array([np.sqrt(1 - cosine ** 2), 0.0, cosine])
+        half = (light + view) / np.linalg.norm(light + view, axis=1, keepdims=True)
+        lobe = ggx_lobe((lit, half[:, 2], np.full(len(lit), cosine), half @ view), alpha)
+        # albedo = (F0 / pi) sum lobe dw, dw = d(cos) d(azimuth) = (1 / steps) (pi / steps)
+        let_in.append(1.0 - FRESNEL_F0 * lobe.sum() / steps ** 2)
+    expected = np.array(let_in) / let_in[-1]
+    got = coat_transmission(cosines, alpha)
+    assert np.abs(got - expected).max() < 2e-3, (got, expected)
+    assert got[0] < 0.95  # a real loss at grazing incidence
+
+
+def test_a_coat_the_held_finish_lacks_darkens_its_falloff():
+    from colorps.brdf import coat_transmission
+
+    coat = BRDF(specular=(0.05,), alpha=0.3, white_highlight=True)
+    matte = BRDF(falloff=(0.9, 0.92, 0.94, 0.95, 0.97, 0.98, 1.0, 1.0))
+    coated = coat.coated_over(matte)
+    expected = np.array(matte.falloff) * coat_transmission(DIFFUSE_KNOTS, 0.3)
+    assert np.allclose(coated.falloff, expected) and coated.specular == coat.specular
+    assert coat.coated_over(coat) is None  # the held falloff has this coat's loss
+    assert BRDF(specular=(0.05,), alpha=0.3).coated_over(matte) is None  # tinted: no coat
+
+
 def test_bad_brdf_values_are_refused():
     with pytest.raises(InputError, match="falloff needs 8 values"):
         BRDF(falloff=(1.0, 1.0))
@@ -374,7 +411,7 @@ def test_a_rough_scene_is_fitted_from_a_lambertian_start(lights, monkeypatch):
 
     # (The simpler finishes compared after the fit would rescue the free one too:
     # left out here, to see the settling alone.)
-    monkeypatch.setattr(virtual, "_simpler_finishes", lambda brdf: [brdf])
+    monkeypatch.setattr(virtual, "_simpler_finishes", lambda brdf, held=None: [brdf])
     settled, _ = fit_scene_brdf(stack, lights, options, mask=scene.mask, radius=60)
     monkeypatch.setattr(virtual, "SETTLE_ROUNDS", 0)
     free, _ = fit_scene_brdf(stack, lights, options, mask=scene.mask, radius=60)

@@ -285,6 +285,37 @@ def test_a_glossy_scene_noisier_than_its_gauge_takes_its_own_finish(tmp_path, ca
     assert max(checked["finish"]["brdf"]["specular"]) > 0.01
     assert _error(tmp_path / "out", scene) < 0.8 * _error(tmp_path / "gauge_only", scene)
 
+def test_a_coated_scene_on_a_matte_gauge_is_matched_under_its_coats_loss(tmp_path,
+                                                                        monkeypatch):
+    """A scene under a clear coat that lets less light into its base towards
+    grazing incidence (as Mitsuba's and pbrt's plastics do), against a matte
+    gauge: the falloff measured on the gauge has no such loss, and held as it
+    is, it tilts the normals; the scene is matched better with that falloff
+    under its fitted coat's loss (BRDF.coated_over), which is taken."""
+    from colorps.brdf import BRDF, DIFFUSE_KNOTS, coat_transmission
+
+    lighting, colours = coloured_lights(16)
+    scene = synth.smiley_surface(64)
+    coated = BRDF(falloff=tuple(coat_transmission(DIFFUSE_KNOTS, 0.2)), specular=(0.05,),
+                  alpha=0.2, white_highlight=True)
+    stack = np.zeros((16, *scene.mask.shape, 3), np.float32)
+    stack[:, scene.mask] = coated.shade(scene.normals[scene.mask], lighting.directions[:, 0],
+                                        colours, albedo=scene.albedo[scene.mask])
+    stack += np.random.default_rng(2).normal(0, 0.004, stack.shape).astype(np.float32)
+    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
+        write_image(tmp_path / f"scene_{k:02d}.exr", np.maximum(image, 0.0))
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    gauge = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto"]
+    assert _reconstruct(tmp_path, tmp_path / "out", *gauge) == 0
+    finish = json.loads((tmp_path / "out" / "report.json").read_text())["gauge_check"]["finish"]
+    assert finish["taken"] and finish["brdf"]["falloff"][0] < 0.9  # the coat's loss
+    with monkeypatch.context() as patch:  # the same run without that candidate
+        patch.setattr(BRDF, "coated_over", lambda self, held: None)
+        assert _reconstruct(tmp_path, tmp_path / "held", *gauge) == 0
+    assert _error(tmp_path / "out", scene) < 0.5 * _error(tmp_path / "held", scene)
+
+
 FOCAL = 250.0  # pixels: rays up to 12 degrees off the axis on the gauge's rim
 
 
