@@ -56,12 +56,14 @@ DIFFUSE_KNOTS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 #: incidence (a clear dielectric of index 1.5: plastics, varnish, glaze),
 #: relative to it: 1 at normal incidence, rising towards grazing.
 FRESNEL_F0 = 0.04
+#: The refractive index of that dielectric: (1 + sqrt(F0)) / (1 - sqrt(F0)).
+COAT_INDEX = (1.0 + FRESNEL_F0 ** 0.5) / (1.0 - FRESNEL_F0 ** 0.5)
 #: A highlight peaking under this fraction of the diffuse albedo is too faint
 #: for the view direction to matter (:attr:`BRDF.depends_on_view`).
 VISIBLE_PEAK = 0.01
-#: coat_transmission averages the highlight over COAT_STEPS shares of its
-#: half-vectors by twice as many azimuths (within 0.001 of a 4 times finer grid).
-COAT_STEPS = 64
+#: coat_transmission averages over COAT_STEPS shares of the coat's facet
+#: normals by twice as many azimuths (within 0.003 of a grid twice as fine).
+COAT_STEPS = 256
 #: best_normals takes NORMAL_STEPS damped Gauss-Newton steps of at most
 #: MAX_NORMAL_STEP radians, derivatives over NORMAL_EPS radians.
 NORMAL_STEPS = 5
@@ -311,15 +313,21 @@ def ggx_lobe(angles: tuple, alpha: float) -> np.ndarray:
 
 
 def coat_transmission(cosines, alpha: float) -> np.ndarray:
-    """Share of a light let into a coated base, relative to normal incidence.
+    """Share of a light that crosses a clear coat into its base, relative to
+    normal incidence.
 
-    A clear dielectric coat reflects part of each light as its highlight
-    (:func:`ggx_lobe`, Fresnel reflectance FRESNEL_F0 at normal incidence) and
-    lets the rest into the diffuse base beneath: 1 minus the highlight's
-    directional albedo at each cosine of incidence (single scattering, as in
-    Mitsuba's and pbrt's coated plastics), over its value at normal incidence.
-    A coated finish's diffuse falloff is the uncoated one times this; a
-    renderer that weights its layers by the view alone has none of it.
+    A clear dielectric coat (the one whose highlight :func:`ggx_lobe` draws:
+    GGX roughness ``alpha``, Fresnel reflectance FRESNEL_F0 at normal
+    incidence, index COAT_INDEX) reflects part of each light and refracts the
+    rest into the diffuse base beneath, where its rough surface also shadows
+    some of the refracted light. This is that single-scattering transmission
+    (the microfacet model of Walter et al. 2007: over the facets the light
+    sees, Schlick's Fresnel transmission times the Smith masking of the
+    refracted ray) at each cosine of incidence, over its value at normal
+    incidence: as Mitsuba 3's ``roughplastic`` weights its base (within 0.01
+    of its table at alpha 0.3). A coated finish's diffuse falloff is the
+    uncoated one times this; a renderer that weights its layers by the view
+    alone has none of it.
 
     Parameters
     ----------
@@ -337,33 +345,36 @@ def coat_transmission(cosines, alpha: float) -> np.ndarray:
     --------
     >>> from colorps.brdf import coat_transmission
     >>> coat_transmission([0.0, 0.5, 1.0], 0.3).round(2).tolist()
-    [0.88, 0.98, 1.0]
+    [0.67, 0.93, 1.0]
     """
     cosines = np.asarray(cosines, dtype=np.float64)
     a2 = alpha * alpha
-    # Half-vectors on a grid of equal shares of D(h) (n . h), the GGX sampling
-    # map: the albedo is the mean of F G1(l) G1(v) (v . h) / ((n . v)(n . h)).
+    # Facet normals m on a grid of equal shares of D(m) (n . m), the GGX
+    # sampling map: the transmission is the mean of
+    # (1 - F) G1(l) G1(t) (l . m) / ((n . l)(n . m)), t the refracted ray.
     share = (np.arange(COAT_STEPS) + 0.5) / COAT_STEPS
-    cos_half = np.sqrt((1.0 - share) / (1.0 + (a2 - 1.0) * share))[:, None]
+    cos_facet = np.sqrt((1.0 - share) / (1.0 + (a2 - 1.0) * share))[:, None]
     turn = (np.arange(2 * COAT_STEPS) + 0.5) * np.pi / COAT_STEPS
-    sin_half = np.sqrt(1.0 - cos_half ** 2)
-    half = np.stack(np.broadcast_arrays(sin_half * np.cos(turn), sin_half * np.sin(turn),
-                                        cos_half), axis=-1).reshape(-1, 3)
+    sin_facet = np.sqrt(1.0 - cos_facet ** 2)
+    facets = np.stack(np.broadcast_arrays(sin_facet * np.cos(turn), sin_facet * np.sin(turn),
+                                          cos_facet), axis=-1).reshape(-1, 3)
 
     def smith(cosine):  # G1(cosine) / cosine, finite at grazing
         return 2.0 / (cosine + np.sqrt(a2 + (1.0 - a2) * cosine ** 2))
 
-    def reflected(cosine):  # the highlight's directional albedo at this incidence
-        view = np.array([np.sqrt(max(0.0, 1.0 - cosine ** 2)), 0.0, cosine])
-        v_dot_h = np.maximum(half @ view, 0.0)
-        light_z = 2.0 * v_dot_h * half[:, 2] - cosine  # the mirror of the view about h
-        fresnel = FRESNEL_F0 + (1.0 - FRESNEL_F0) * (1.0 - v_dot_h) ** 5
-        value = fresnel * smith(np.maximum(light_z, 0.0)) * np.maximum(light_z, 0.0) * \
-            smith(cosine) * v_dot_h / half[:, 2]
-        return float(np.where(light_z > 0.0, value, 0.0).mean())
+    def let_in(cosine):
+        light = np.array([np.sqrt(max(0.0, 1.0 - cosine ** 2)), 0.0, cosine])
+        l_dot_m = np.maximum(facets @ light, 0.0)
+        cos_refracted = np.sqrt(1.0 - (1.0 - l_dot_m ** 2) / COAT_INDEX ** 2)
+        # -z of the refracted ray -l / eta + (l.m / eta - cos_refracted) m
+        depth = light[2] / COAT_INDEX - (l_dot_m / COAT_INDEX - cos_refracted) * facets[:, 2]
+        crossing = 1.0 - FRESNEL_F0 - (1.0 - FRESNEL_F0) * (1.0 - l_dot_m) ** 5
+        value = crossing * smith(cosine) * smith(np.maximum(depth, 0.0)) * \
+            np.maximum(depth, 0.0) * l_dot_m / facets[:, 2]
+        return float(np.where((l_dot_m > 0.0) & (depth > 0.0), value, 0.0).mean())
 
-    let_in = np.array([1.0 - reflected(float(c)) for c in cosines.ravel()])
-    return (let_in / (1.0 - reflected(1.0))).reshape(cosines.shape)
+    shares = np.array([let_in(float(c)) for c in cosines.ravel()])
+    return (shares / let_in(1.0)).reshape(cosines.shape)
 
 
 def best_normals(obs: np.ndarray, weight: np.ndarray, normals: np.ndarray, brdf: BRDF,
