@@ -155,21 +155,26 @@ class BRDF:
         """The finish without its highlight."""
         return BRDF(self.falloff, roughness=self.roughness)
 
-    def coated_over(self, held: BRDF) -> BRDF | None:
-        """The finish with ``held``'s falloff times the light its own clear coat
-        keeps from the base at each incidence, beyond what ``held``'s coat keeps
-        (:func:`coat_transmission`): for a falloff measured on a gauge whose
-        coat, if any, is not this finish's. None without a white highlight, or
-        when the two coats' losses differ by under VISIBLE_PEAK."""
-        if not self.has_white_highlight:
-            return None
+    def coat_adjusted(self, held: BRDF) -> BRDF | None:
+        """The finish with ``held``'s falloff carried over to its own clear coat.
+
+        ``held``'s falloff (a gauge's, measured at its known normals) times the
+        share of light this finish's coat lets into its base at each incidence,
+        over the share ``held``'s coat lets in (:func:`coat_transmission`; a
+        finish without a white highlight has no coat): a matte gauge's falloff
+        darkened towards grazing for a coated scene, a coated gauge's brightened
+        for a matte one. None when the two coats let in the same light, within
+        VISIBLE_PEAK.
+        """
         knots = np.array(DIFFUSE_KNOTS)
-        loss = coat_transmission(knots, self.alpha)
+        let_in = np.ones(len(knots))
+        if self.has_white_highlight:
+            let_in *= coat_transmission(knots, self.alpha)
         if held.has_white_highlight:
-            loss /= coat_transmission(knots, held.alpha)
-        if np.abs(loss - 1.0).max() < VISIBLE_PEAK:
+            let_in /= coat_transmission(knots, held.alpha)
+        if np.abs(let_in - 1.0).max() < VISIBLE_PEAK:
             return None
-        return replace(self, falloff=tuple(np.asarray(held.falloff) * loss))
+        return replace(self, falloff=tuple(np.asarray(held.falloff) * let_in))
 
     def bands(self, count: int) -> np.ndarray:
         """(count,) highlight strength per band."""

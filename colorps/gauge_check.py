@@ -92,13 +92,19 @@ NOISE_LEVEL_SAMPLE = 100_000
 #: finishes match, 1.0-1.7 (docs/benchmarks.md).
 CLEARLY_BETTER = 0.85
 #: A scene noisier than its gauge (NOISIER_SCENE) takes that solution when its
-#: own fitted finish has a roughness, or a highlight of at least this strength
-#: (the share of light it reflects at normal incidence; clear coats 0.04): its
-#: residuals cannot tell. Mitsuba 3's textured pots with one bounce, 7.9-9.0
-#: times noisier than their gauges: under a GGX coat (0.067 fitted) 0.72 -> 0.52
+#: own fitted finish differs from the gauge's own (:func:`shows_finish`): a
+#: highlight of at least NOISY_SCENE_HIGHLIGHT (the share of light it reflects
+#: at normal incidence; clear coats 0.04) that one has and the other has not, a
+#: roughness NOISY_SCENE_ROUGHNESS apart (radians), or a falloff
+#: NOISY_SCENE_FALLOFF apart at some incidence (another coat's): its residuals
+#: cannot tell. Mitsuba 3's textured pots with one bounce, 7.9-9.0 times
+#: noisier than their gauges: under a GGX coat (0.067 fitted) 0.72 -> 0.52
 #: degrees median, on a matte gauge 4.16 -> 2.85; matte (a lobe of 7e-6 fitted
-#: to the noise) kept, 0.28 (0.37 had it been taken).
+#: to the noise) kept, 0.28 (0.37 had it been taken); matte on a coated gauge
+#: 5.33 -> 0.36.
 NOISY_SCENE_HIGHLIGHT = 0.01
+NOISY_SCENE_ROUGHNESS = 0.05
+NOISY_SCENE_FALLOFF = 0.05
 #: A matte gauge read without a camera is fitted again through pinholes of focal
 #: lengths LENS_FOCAL_RADII times its radius (principal point at the image's
 #: centre); when the best of them, inside that range, leaves under LENS_BETTER of
@@ -443,20 +449,21 @@ def noisier_scene(scene: np.ndarray, mask: np.ndarray | None, stats: Reconstruct
 
 
 def judge_finish(record: dict, first_file: Path, *, noisier: float | None = None,
-                 finish=None) -> bool:
+                 finish=None, gauge_finish=None) -> bool:
     """Whether a run whose scene the matte gauge explained poorly takes the
     solution with the gauge's lights and the scene's own finish (``finish``, a
     :class:`~colorps.brdf.BRDF`): its median residual is under CLEARLY_BETTER of
     the gauge's (both in ``record``, noise units; ``taken`` is added). When the
     scene is ``noisier`` than its gauge (that many times: :func:`noisier_scene`;
     the warning then names the scene's ``first_file``) its residuals
-    cannot tell: it is taken when that finish has a roughness or a highlight of
-    NOISY_SCENE_HIGHLIGHT, which the matte gauge's has not. Warns of what was done. A run
+    cannot tell: it is taken when that finish differs from the gauge's own
+    (``gauge_finish``; :func:`shows_finish`). Warns of what was done. A run
     that could not try it (``residual_with_gauge_lights`` None: a tiled run) is
     told how to, by hand."""
     gauge, own = record["residual_with_gauge"], record["residual_with_gauge_lights"]
     if noisier is not None:
-        record["taken"] = bool(own is not None and finish is not None and shows_finish(finish))
+        record["taken"] = bool(own is not None and finish is not None and
+                               shows_finish(finish, gauge_finish))
         _say_noisier(record, noisier, first_file)
         return record["taken"]
     record["taken"] = bool(own is not None and own < CLEARLY_BETTER * gauge)
@@ -485,10 +492,20 @@ def judge_finish(record: dict, first_file: Path, *, noisier: float | None = None
     return record["taken"]
 
 
-def shows_finish(finish) -> bool:
-    """Whether a scene's fitted finish (a :class:`~colorps.brdf.BRDF`) has what a
-    matte gauge lacks: a roughness, or a highlight of NOISY_SCENE_HIGHLIGHT."""
-    return finish.roughness > 0.0 or max(finish.specular) >= NOISY_SCENE_HIGHLIGHT
+def shows_finish(finish, gauge_finish=None) -> bool:
+    """Whether a scene's fitted finish (a :class:`~colorps.brdf.BRDF`) differs
+    from its gauge's own (``gauge_finish``, fitted at its known normals; default a
+    matte one): a highlight of NOISY_SCENE_HIGHLIGHT that one has and the other
+    has not, a roughness NOISY_SCENE_ROUGHNESS apart, or a falloff
+    NOISY_SCENE_FALLOFF apart at some incidence."""
+    def shines(brdf) -> bool:
+        return max(brdf.specular) >= NOISY_SCENE_HIGHLIGHT
+
+    gauge_finish = gauge_finish or type(finish)()
+    falloff_apart = np.abs(np.subtract(finish.falloff, gauge_finish.falloff)).max()
+    return (shines(finish) != shines(gauge_finish)
+            or abs(finish.roughness - gauge_finish.roughness) >= NOISY_SCENE_ROUGHNESS
+            or falloff_apart >= NOISY_SCENE_FALLOFF)
 
 
 def _say_noisier(record: dict, ratio: float, first_file: Path) -> None:
@@ -500,11 +517,11 @@ def _say_noisier(record: dict, ratio: float, first_file: Path) -> None:
             "scene's Monte Carlo noise, or photographed at a lower ISO)")
     if record["taken"]:
         said += (", so its residuals cannot tell its finish from the gauge's; but its own "
-                 "fitted finish has a highlight or a roughness, which the matte gauge's has "
-                 "not. Solved instead with the lights measured on the "
+                 "fitted finish differs from the gauge's (a highlight, a roughness or a "
+                 "falloff). Solved instead with the lights measured on the "
                  "gauge and that finish; report.json's gauge_check.finish says so")
     else:
-        why = "could not be fitted" if "failed" in record else "has no highlight nor roughness"
+        why = "could not be fitted" if "failed" in record else "is the gauge's"
         said += (f", not of another finish (its own fitted finish {why}): the gauge's result "
                  "is kept. Residuals and quality.exr are in the gauge's noise units; "
                  "report.json's gauge_check.scene_noise_over_gauge says so")

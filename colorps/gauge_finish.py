@@ -140,12 +140,14 @@ def with_gauge_lights(scene: np.ndarray, gauge_stack: np.ndarray, gauge: Gauge,
     (:func:`colorps.virtual.view_corrected`, which changes ``scene`` in place).
     Returns (the :class:`~colorps.Reconstruction`, its settings, (the finish,
     its fits), the lights, the gauge's finish); the Reconstruction and its
-    settings are None when ``wanted`` says so (:func:`colorps.virtual.with_own_finish`)."""
+    settings are None when ``wanted`` (a predicate of the scene's fitted finish
+    and the gauge's) says so (:func:`colorps.virtual.with_own_finish`)."""
     lights, _ = matte_sphere_lights(gauge_stack, gauge.sphere, albedo=gauge.albedo,
                                     clip_level=run.gauge_levels[0], camera=camera)
     own, lights = gauge_finish(gauge_stack, gauge, lights, camera=camera,
                                clip_level=run.gauge_levels[0],
                                dark_level=run.options.dark_level)
     return (*with_own_finish(scene, lights, run, mask=mask, radius=radius, camera=camera,
-                             progress=progress, held_finish=own, wanted=wanted),
+                             progress=progress, held_finish=own,
+                             wanted=None if wanted is None else lambda brdf: wanted(brdf, own)),
             lights, own)

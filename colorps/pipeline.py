@@ -537,13 +537,12 @@ def _left_in(result, why: str, advice: str) -> dict:
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
                        mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
-    """A run whose matte gauge explains its scene poorly, solved again with the gauge's
-    lights and the scene's own finish (:func:`gauge_finish.with_gauge_lights`) and kept if
-    clearly better (:func:`gauge_check.judge_finish`, which records it in ``checked``;
-    for a scene :func:`gauge_check.noisier_scene` than its gauge, when its own finish
-    :func:`gauge_check.shows_finish`, and only then matched with it). ``scene``: what ``result`` was solved from (None: a tiled
-    run's, not tried). Returns (result, settings, finish and its fits or None, the
-    gauge's lights or None)."""
+    """A run whose gauge explains its scene poorly, solved again with the gauge's lights
+    and the scene's own finish (:func:`gauge_finish.with_gauge_lights`; a scene
+    :func:`gauge_check.noisier_scene` than its gauge matched with it only when that
+    :func:`gauge_check.shows_finish`), kept as :func:`gauge_check.judge_finish` says
+    (recorded in ``checked``). ``scene``: what ``result`` was solved from (None: a tiled
+    run's, not tried). Returns (result, settings, finish and fits or None, lights or None)."""
     noisier = scene is not None and noisier_scene(scene, mask, result.stats, checked)
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
@@ -561,7 +560,8 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
         record["failed"] = str(error)
     if judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
                     noisier=checked["scene_noise_over_gauge"] if noisier else None,
-                    finish=finish[0] if record["brdf"] else None):
+                    finish=finish[0] if record["brdf"] else None,
+                    gauge_finish=own if record["brdf"] else None):
         return other, other_run, finish, lights
     return result, run, None, None
 

@@ -287,10 +287,11 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         scene's estimated normals, the falloff trades with their tilt (a
         Mitsuba plastic pot: its fit at the true normals 0.68 at grazing, at
         the matched ones 1.14, and the normals 1.01 degrees off, leaning away
-        from the view). A scene with a clear coat the held finish lacks
-        (a white highlight) is also matched with that falloff under the coat's
-        loss (:meth:`BRDF.coated_over`), a candidate like the simpler ones: a
-        plastic pot on a matte gauge, 2.85 -> 2.19 degrees median.
+        from the view). The scene is also matched with that falloff carried
+        over to its own clear coat (:meth:`BRDF.coat_adjusted`: a white
+        highlight the held finish has not, or the reverse), a candidate like
+        the simpler ones: a plastic pot on a matte gauge, 2.85 -> 0.99 degrees
+        median.
 
     Returns
     -------
@@ -375,10 +376,11 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
 def _simpler_finishes(brdf: BRDF, held: BRDF | None = None) -> list[BRDF]:
     """The fitted finish and the others :func:`fit_scene_brdf` compares it with
     (SIMPLER_GAIN; not Lambert itself, which the kept fit already beat): simpler
-    ones, and the held falloff under the fit's coat (:meth:`BRDF.coated_over`)."""
+    ones, and the held falloff carried over to the fit's coat
+    (:meth:`BRDF.coat_adjusted`)."""
     flat = dataclasses.replace(brdf, falloff=BRDF.lambert().falloff)
     plain = [BRDF(roughness=r) for r in roughness_bracket(brdf.roughness)]
-    coated = [] if held is None else [brdf.coated_over(held)]
+    coated = [] if held is None else [brdf.coat_adjusted(held)]
     return list(dict.fromkeys(f for f in (brdf, flat, *plain, *coated)
                               if f is not None and not f.is_lambert))
 

@@ -183,16 +183,18 @@ def test_a_coats_transmission_is_its_microfacet_btdfs_integral():
     assert got[0] < 0.7  # a real loss at grazing incidence
 
 
-def test_a_coat_the_held_finish_lacks_darkens_its_falloff():
+def test_a_coat_the_held_finish_lacks_darkens_its_falloff_and_the_reverse():
     from colorps.brdf import coat_transmission
 
     coat = BRDF(specular=(0.05,), alpha=0.3, white_highlight=True)
     matte = BRDF(falloff=(0.9, 0.92, 0.94, 0.95, 0.97, 0.98, 1.0, 1.0))
-    coated = coat.coated_over(matte)
+    coated = coat.coat_adjusted(matte)
     expected = np.array(matte.falloff) * coat_transmission(DIFFUSE_KNOTS, 0.3)
     assert np.allclose(coated.falloff, expected) and coated.specular == coat.specular
-    assert coat.coated_over(coat) is None  # the held falloff has this coat's loss
-    assert BRDF(specular=(0.05,), alpha=0.3).coated_over(matte) is None  # tinted: no coat
+    assert coat.coat_adjusted(coat) is None  # the held falloff has this coat's loss
+    assert BRDF(specular=(0.05,), alpha=0.3).coat_adjusted(matte) is None  # tinted: no coat
+    uncoated = matte.coat_adjusted(coated)  # a matte scene on a coated gauge: the reverse
+    assert np.allclose(uncoated.falloff, matte.falloff) and not any(uncoated.specular)
 
 
 def test_bad_brdf_values_are_refused():

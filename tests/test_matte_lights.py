@@ -252,7 +252,7 @@ def test_a_scene_noisier_than_its_gauge_is_not_taken_for_another_finish(tmp_path
     record = json.loads((tmp_path / "out" / "report.json").read_text())
     checked = record["gauge_check"]
     assert checked["finish"]["taken"] is False and record["brdf"] is None
-    assert "has no highlight nor roughness" in said
+    assert "its own fitted finish is the gauge's" in said
     assert 7 < checked["scene_noise_over_gauge"] < 13
     scale = record["statistics"]["model_scale"]
     assert finish_differs(scale, {**checked, "scene_noise_over_gauge": None})  # alone: yes
@@ -285,13 +285,50 @@ def test_a_glossy_scene_noisier_than_its_gauge_takes_its_own_finish(tmp_path, ca
     assert max(checked["finish"]["brdf"]["specular"]) > 0.01
     assert _error(tmp_path / "out", scene) < 0.8 * _error(tmp_path / "gauge_only", scene)
 
+def test_a_noisy_matte_scene_on_a_coated_gauge_is_matched_without_the_coat(tmp_path):
+    """The reverse: a noisy Lambertian scene against a gauge under a clear coat
+    (its highlight, and the light its coat keeps from its base at grazing
+    incidence). The scene's own finish has none of the gauge's: that differs,
+    though its residuals cannot tell, and the solution with the gauge's lights
+    and the scene's finish is taken, closer to the truth than the gauge's."""
+    from colorps import Gauge
+    from colorps.brdf import BRDF, DIFFUSE_KNOTS, coat_transmission
+    from colorps.gauge_check import shows_finish
+
+    lighting, colours = coloured_lights(16)
+    scene = synth.smiley_surface(64)
+    stack = synth.render(scene, lighting, noise=0.02, seed=2)
+    coat = BRDF(falloff=tuple(coat_transmission(DIFFUSE_KNOTS, 0.2)), specular=(0.05,),
+                alpha=0.2, white_highlight=True)
+    assert shows_finish(BRDF.lambert(), coat) and not shows_finish(coat, coat)
+    assert shows_finish(coat) and not shows_finish(BRDF.lambert())  # against a matte one
+    gauge = Gauge.from_sphere((130, 140), *CENTRE, RADIUS, rim_margin=0.0)
+    balls = np.zeros((16, 130, 140, 3), np.float32)
+    balls[:, gauge.mask] = coat.shade(gauge.normals[gauge.mask], lighting.directions[:, 0],
+                                      colours, albedo=np.full((gauge.mask.sum(), 3), 0.8))
+    for k, (image, ball) in enumerate(zip(stack, balls)):
+        write_image(tmp_path / f"scene_{k:02d}.exr", image)
+        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
+    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    gauge_files = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto",
+                   "--gauge-albedo", "0.8"]
+    assert _reconstruct(tmp_path, tmp_path / "gauge_only", *gauge_files,
+                        "--no-finish-check") == 0
+    assert _reconstruct(tmp_path, tmp_path / "out", *gauge_files) == 0
+    checked = json.loads((tmp_path / "out" / "report.json").read_text())["gauge_check"]
+    assert checked["scene_noise_over_gauge"] > 2 and checked["finish"]["taken"]
+    # 3.3 -> 1.8 degrees (a Lambertian gauge: 1.1; the rest is the lights, which a
+    # Lambertian fit to the coated sphere tilts 1.5-2.4 degrees).
+    assert _error(tmp_path / "out", scene) < 0.7 * _error(tmp_path / "gauge_only", scene)
+
+
 def test_a_coated_scene_on_a_matte_gauge_is_matched_under_its_coats_loss(tmp_path,
                                                                         monkeypatch):
     """A scene under a clear coat that lets less light into its base towards
     grazing incidence (as Mitsuba's and pbrt's plastics do), against a matte
     gauge: the falloff measured on the gauge has no such loss, and held as it
     is, it tilts the normals; the scene is matched better with that falloff
-    under its fitted coat's loss (BRDF.coated_over), which is taken."""
+    under its fitted coat's loss (BRDF.coat_adjusted), which is taken."""
     from colorps.brdf import BRDF, DIFFUSE_KNOTS, coat_transmission
 
     lighting, colours = coloured_lights(16)
@@ -311,7 +348,7 @@ def test_a_coated_scene_on_a_matte_gauge_is_matched_under_its_coats_loss(tmp_pat
     finish = json.loads((tmp_path / "out" / "report.json").read_text())["gauge_check"]["finish"]
     assert finish["taken"] and finish["brdf"]["falloff"][0] < 0.9  # the coat's loss
     with monkeypatch.context() as patch:  # the same run without that candidate
-        patch.setattr(BRDF, "coated_over", lambda self, held: None)
+        patch.setattr(BRDF, "coat_adjusted", lambda self, held: None)
         assert _reconstruct(tmp_path, tmp_path / "held", *gauge) == 0
     assert _error(tmp_path / "out", scene) < 0.5 * _error(tmp_path / "held", scene)
 
