@@ -160,17 +160,18 @@ class BRDF:
 
         ``held``'s falloff (a gauge's, measured at its known normals) times the
         share of light this finish's coat lets into its base at each incidence,
-        over the share ``held``'s coat lets in (:func:`coat_transmission`; a
-        finish without a white highlight has no coat): a matte gauge's falloff
-        darkened towards grazing for a coated scene, a coated gauge's brightened
-        for a matte one. None when the two coats let in the same light, within
-        VISIBLE_PEAK.
+        over the share ``held``'s coat lets in (:func:`coat_transmission`): a
+        matte gauge's falloff darkened towards grazing for a coated scene, a
+        coated gauge's brightened for a matte one. This finish has a coat when
+        its highlight is white (a tinted one is a metal's); ``held``, a gauge of
+        one albedo on which the two look alike, when it has a visible highlight.
+        None when the two coats let in the same light, within VISIBLE_PEAK.
         """
         knots = np.array(DIFFUSE_KNOTS)
         let_in = np.ones(len(knots))
         if self.has_white_highlight:
             let_in *= coat_transmission(knots, self.alpha)
-        if held.has_white_highlight:
+        if held.highlight_peak > VISIBLE_PEAK:
             let_in /= coat_transmission(knots, held.alpha)
         if np.abs(let_in - 1.0).max() < VISIBLE_PEAK:
             return None

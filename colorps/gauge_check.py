@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .brdf import BRDF
 from .camera import Camera
 from .errors import CameraWarning, EncodingWarning, GaugeError, GaugeWarning
 from .gauge import Gauge
@@ -101,9 +102,13 @@ CLEARLY_BETTER = 0.85
 #: noisier than their gauges: under a GGX coat (0.067 fitted) 0.72 -> 0.52
 #: degrees median, on a matte gauge 4.16 -> 2.85; matte (a lobe of 7e-6 fitted
 #: to the noise) kept, 0.28 (0.37 had it been taken); matte on a coated gauge
-#: 5.33 -> 0.36.
+#: 2.79 -> 0.46 (its finish had been compared with a matte gauge's).
 NOISY_SCENE_HIGHLIGHT = 0.01
+#: Roughnesses (Oren-Nayar sigma, radians) this far apart differ (the fit's grid
+#: steps by 0.1).
 NOISY_SCENE_ROUGHNESS = 0.05
+#: Falloffs this far apart at some knot differ (a clear coat of alpha 0.3 takes
+#: 0.33 at grazing, 0.05 at the cosine 0.6).
 NOISY_SCENE_FALLOFF = 0.05
 #: A matte gauge read without a camera is fitted again through pinholes of focal
 #: lengths LENS_FOCAL_RADII times its radius (principal point at the image's
@@ -501,7 +506,7 @@ def shows_finish(finish, gauge_finish=None) -> bool:
     def shines(brdf) -> bool:
         return max(brdf.specular) >= NOISY_SCENE_HIGHLIGHT
 
-    gauge_finish = gauge_finish or type(finish)()
+    gauge_finish = gauge_finish or BRDF.lambert()
     falloff_apart = np.abs(np.subtract(finish.falloff, gauge_finish.falloff)).max()
     return (shines(finish) != shines(gauge_finish)
             or abs(finish.roughness - gauge_finish.roughness) >= NOISY_SCENE_ROUGHNESS
