@@ -93,9 +93,9 @@ NOISE_LEVEL_SAMPLE = 100_000
 #: finishes match, 1.0-1.7 (docs/benchmarks.md).
 CLEARLY_BETTER = 0.85
 #: A scene noisier than its gauge (NOISIER_SCENE) takes that solution when its
-#: own fitted finish differs from the gauge's own (:func:`shows_finish`): a
-#: highlight of at least NOISY_SCENE_HIGHLIGHT (the share of light it reflects
-#: at normal incidence; clear coats 0.04) that one has and the other has not, a
+#: own fitted finish is one the gauge's match gets wrong (:func:`shows_finish`):
+#: a highlight of at least NOISY_SCENE_HIGHLIGHT (the share of light it reflects
+#: at normal incidence; clear coats 0.04) on the scene or on the gauge, a
 #: roughness NOISY_SCENE_ROUGHNESS apart (radians), or a falloff
 #: NOISY_SCENE_FALLOFF apart at some incidence (another coat's): its residuals
 #: cannot tell. Mitsuba 3's textured pots with one bounce, 7.9-9.0 times
@@ -498,17 +498,16 @@ def judge_finish(record: dict, first_file: Path, *, noisier: float | None = None
 
 
 def shows_finish(finish, gauge_finish=None) -> bool:
-    """Whether a scene's fitted finish (a :class:`~colorps.brdf.BRDF`) differs
-    from its gauge's own (``gauge_finish``, fitted at its known normals; default a
-    matte one): a highlight of NOISY_SCENE_HIGHLIGHT that one has and the other
-    has not, a roughness NOISY_SCENE_ROUGHNESS apart, or a falloff
+    """Whether a scene's fitted finish (a :class:`~colorps.brdf.BRDF`) is one its
+    gauge's match gets wrong, its residuals aside: it or the gauge's own
+    (``gauge_finish``, fitted at its known normals; default a matte one) has a
+    highlight of NOISY_SCENE_HIGHLIGHT (a grey gauge's signatures cannot hold a
+    white highlight on coloured patches, whatever its own finish), or their
+    roughnesses are NOISY_SCENE_ROUGHNESS apart, or their falloffs
     NOISY_SCENE_FALLOFF apart at some incidence."""
-    def shines(brdf) -> bool:
-        return max(brdf.specular) >= NOISY_SCENE_HIGHLIGHT
-
     gauge_finish = gauge_finish or BRDF.lambert()
     falloff_apart = np.abs(np.subtract(finish.falloff, gauge_finish.falloff)).max()
-    return (shines(finish) != shines(gauge_finish)
+    return (max(*finish.specular, *gauge_finish.specular) >= NOISY_SCENE_HIGHLIGHT
             or abs(finish.roughness - gauge_finish.roughness) >= NOISY_SCENE_ROUGHNESS
             or falloff_apart >= NOISY_SCENE_FALLOFF)
 
@@ -521,12 +520,13 @@ def _say_noisier(record: dict, ratio: float, first_file: Path) -> None:
             "explains it: the scene is noisier than its gauge (a gauge rendered without the "
             "scene's Monte Carlo noise, or photographed at a lower ISO)")
     if record["taken"]:
-        said += (", so its residuals cannot tell its finish from the gauge's; but its own "
-                 "fitted finish differs from the gauge's (a highlight, a roughness or a "
-                 "falloff). Solved instead with the lights measured on the "
+        said += (", so its residuals cannot tell its finish from the gauge's; but a "
+                 "highlight on either, or its own fitted finish's roughness or falloff, "
+                 "differs from what the gauge's match assumes. Solved instead with the "
+                 "lights measured on the "
                  "gauge and that finish; report.json's gauge_check.finish says so")
     else:
-        why = "could not be fitted" if "failed" in record else "is the gauge's"
+        why = "could not be fitted" if "failed" in record else "is the matte gauge's"
         said += (f", not of another finish (its own fitted finish {why}): the gauge's result "
                  "is kept. Residuals and quality.exr are in the gauge's noise units; "
                  "report.json's gauge_check.scene_noise_over_gauge says so")
