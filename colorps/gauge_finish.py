@@ -66,14 +66,17 @@ MAX_DIRECTION_STEP = 0.05
 def gauge_finish(stack, gauge: Gauge, lights: Lights, *, camera: Camera | None = None,
                  clip_level: float | None = None, dark_level: float = 0.0
                  ) -> tuple[BRDF, Lights]:
-    """The gauge's finish under ``lights``, at its known normals, and the lights'
-    intensities under it.
+    """The gauge's finish under ``lights``, at its known normals, and the lights
+    measured again under it.
 
     :func:`colorps.brdf_fit.fit_brdf` on GAUGE_FIT_PIXELS of the pixels within
     its rim margin, each seen along its ray through a lens, the normals held.
-    Then each light's intensity per band under that finish (a matte fit's
-    take up some of a glossier finish), each pixel's albedo free as a match
-    leaves it, SCALE_ROUNDS times in turn.
+    On a finish that departs from Lambert's (SHOWN_FALLOFF, or a highlight) each
+    light's direction is fitted again under it, and the finish again under
+    them, DIRECTION_ROUNDS times (:func:`_directions_again`). Then each light's
+    intensity per band under that finish (a matte fit's take up some of a
+    glossier finish), each pixel's albedo free as a match leaves it,
+    SCALE_ROUNDS times in turn.
 
     Parameters
     ----------
@@ -95,7 +98,7 @@ def gauge_finish(stack, gauge: Gauge, lights: Lights, *, camera: Camera | None =
         The finish (on a gauge of one albedo a white highlight and a tinted one
         are alike: take only its falloff, roughness and the highlight's shape
         from it), and the lights, their intensities relative to the gauge's
-        albedo.
+        albedo seen head-on.
 
     Raises
     ------
