@@ -34,12 +34,12 @@ import dataclasses
 
 import numpy as np
 
-from .brdf import BRDF, DIFFUSE_KNOTS, NORMAL_EPS, VISIBLE_PEAK
+from .brdf import BRDF, DIFFUSE_KNOTS, VISIBLE_PEAK
 from .brdf_fit import fit_brdf
 from .camera import Camera
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge, parse_albedo
 from .lights import Lights
-from .matte_lights import matte_sphere_lights
+from .matte_lights import matte_sphere_lights, refine_direction
 from .resolve import Resolved
 from .virtual import with_own_finish
 
@@ -54,13 +54,12 @@ GAUGE_FIT_PIXELS = 1500
 SCALE_ROUNDS = 3
 #: A gauge whose fitted falloff departs from Lambert's by this much somewhere,
 #: or that shows a highlight (brdf.VISIBLE_PEAK), has its lights' directions
-#: fitted again: DIRECTION_ROUNDS rounds, each of DIRECTION_STEPS Gauss-Newton
-#: steps per light (of at most MAX_DIRECTION_STEP radians), then the finish
-#: again. Mitsuba's plastic gauge: 0.29 -> 0.20 -> 0.05 -> 0.04 degrees (mean).
+#: fitted again: DIRECTION_ROUNDS rounds, each of up to DIRECTION_STEPS
+#: Gauss-Newton steps per light (matte_lights.refine_direction), then the finish
+#: again. Mitsuba's plastic gauge: 0.29 -> 0.02 degrees (mean).
 SHOWN_FALLOFF = 0.02
 DIRECTION_ROUNDS = 3
 DIRECTION_STEPS = 3
-MAX_DIRECTION_STEP = 0.05
 
 
 def gauge_finish(stack, gauge: Gauge, lights: Lights, *, camera: Camera | None = None,
@@ -152,7 +151,7 @@ def _departs(brdf: BRDF) -> bool:
 
 def _directions_again(observed, usable, normals, views, brdf: BRDF,
                       directions: np.ndarray) -> np.ndarray:
-    """Each light's direction refitted under the gauge's finish (DIRECTION_STEPS
+    """Each light's direction refitted under the gauge's finish (up to DIRECTION_STEPS
     Gauss-Newton steps on two tangent angles). The sphere has one albedo, but a
     finish darker towards grazing light is darker towards grazing view too
     (reciprocity: a coat lets light out as it lets it in), so each pixel's
@@ -168,24 +167,12 @@ def _directions_again(observed, usable, normals, views, brdf: BRDF,
         unit = diffuse[0][:, None] * exit_share
         if lobe is not None:
             unit = unit + lobe[0][:, None] * strength
-        unit = np.where(usable[k], unit, 0.0)
-        scale = (unit * observed[k]).sum(axis=0) / np.maximum((unit ** 2).sum(axis=0), 1e-30)
+        scale = _scale(observed[k], unit, usable[k], axis=0)
         return np.where(usable[k], observed[k] - unit * scale, 0.0).ravel()
 
-    fitted = np.array(directions, dtype=np.float64)
-    for k, light in enumerate(fitted):
-        for _ in range(DIRECTION_STEPS):
-            across = np.cross(light, [0.0, 0.0, 1.0])
-            across /= max(np.linalg.norm(across), 1e-12)
-            tangents = (across, np.cross(light, across))
-            now = residual(k, light)
-            jacobian = np.stack([(residual(k, _turned(light, t, NORMAL_EPS)) - now) / NORMAL_EPS
-                                 for t in tangents], axis=1)
-            step = np.clip(np.linalg.lstsq(jacobian, -now, rcond=None)[0],
-                           -MAX_DIRECTION_STEP, MAX_DIRECTION_STEP)
-            light = _turned(_turned(light, tangents[0], step[0]), tangents[1], step[1])
-        fitted[k] = light
-    return fitted
+    return np.array([refine_direction(lambda light, k=k: residual(k, light),
+                                      np.asarray(light, dtype=np.float64), DIRECTION_STEPS)[0]
+                     for k, light in enumerate(directions)])
 
 
 def _exit_share(normals, views, brdf: BRDF) -> np.ndarray:
@@ -193,12 +180,6 @@ def _exit_share(normals, views, brdf: BRDF) -> np.ndarray:
     head-on: its falloff at the cosine of the view (reciprocity)."""
     cos_view = normals[:, 2] if views is None else np.einsum("ij,ij->i", normals, views)
     return np.interp(cos_view, DIFFUSE_KNOTS, brdf.falloff)[:, None]
-
-
-def _turned(direction: np.ndarray, tangent: np.ndarray, angle: float) -> np.ndarray:
-    """A unit direction moved ``angle`` radians (small) along a unit tangent."""
-    moved = direction + angle * tangent
-    return moved / np.linalg.norm(moved)
 
 
 def _scale(observed, model, usable, axis: int) -> np.ndarray:

@@ -48,7 +48,7 @@ from .gauge import Gauge, parse_albedo
 from .gauge_check import lambertian_fit
 from .lights import DIRECTION_HEADER, MIN_ELEVATION_Z, Lights, direction_columns
 
-__all__ = ["MatteLight", "matte_sphere_lights", "matte_table"]
+__all__ = ["MatteLight", "matte_sphere_lights", "matte_table", "refine_direction"]
 
 # ---------------------------------------------------------------- tuning
 #: An image needs this many lit pixels on the sphere.
@@ -235,6 +235,16 @@ def _refined_direction(shown: np.ndarray, normals: np.ndarray, views, direction:
         shade = _shading(normals, d, roughness, views)
         return shown - shade * (shown @ shade) / max(shade @ shade, 1e-30)
 
+    direction, cost = refine_direction(residual, direction, DIRECTION_STEPS)
+    return direction, float(cost / max(shown @ shown, 1e-30))
+
+
+def refine_direction(residual, direction: np.ndarray, steps: int) -> tuple[np.ndarray, float]:
+    """A unit direction refined by up to ``steps`` Gauss-Newton steps on two
+    tangent angles (derivatives over 1e-6 radians), each taken only when it
+    lowers the sum of squares of ``residual(direction)`` (a 1-D array); the
+    direction and that sum."""
+
     def turned(d, du, dv):
         helper = [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]
         t1 = np.cross(d, helper)
@@ -245,7 +255,7 @@ def _refined_direction(shown: np.ndarray, normals: np.ndarray, views, direction:
     eps = 1e-6
     current = residual(direction)
     cost = current @ current
-    for _ in range(DIRECTION_STEPS):
+    for _ in range(steps):
         jacobian = np.stack([(residual(turned(direction, eps, 0.0)) - current) / eps,
                              (residual(turned(direction, 0.0, eps)) - current) / eps], axis=1)
         step = np.linalg.lstsq(jacobian, -current, rcond=None)[0]
@@ -255,7 +265,7 @@ def _refined_direction(shown: np.ndarray, normals: np.ndarray, views, direction:
             break
         direction, current = trial, trial_residual
         cost = current @ current
-    return direction, float(cost / max(shown @ shown, 1e-30))
+    return direction, float(cost)
 
 
 def _light(shown: np.ndarray, shade: np.ndarray, direction: np.ndarray, albedo: np.ndarray,
