@@ -23,11 +23,12 @@ leaves them). ``--only TEXT`` runs the sets whose names hold it.
 For each set it prints the whole-mask mean angular error with refused pixels
 counted as 90 degrees, the median, and the fraction solved, for
 
-* **gauge**: ``colorps.reconstruct`` with the rendered gauge, default options
-  (its rim margin measured as ``colorps reconstruct`` measures it), then the
-  light the folds bounce onto themselves taken out as ``colorps reconstruct``
-  does (:func:`colorps.interreflection.without_interreflections`; for the
-  interreflection set a row more without it);
+* **gauge**: ``colorps reconstruct`` itself (:func:`solved_by_reconstruct`: the
+  set written to files, the gauge's circle given, default options), so with the
+  light the folds bounce onto themselves taken out and, where the scene's finish
+  is not its gauge's, the scene solved again with the gauge's lights and its own
+  finish (the set's name then says "the finish route"); for the interreflection
+  set a row more without the bounced light taken out;
 * **virtual**: the gauge rendered under the calibrated lights with the finish
   fitted to the scene (:func:`colorps.virtual.virtual_gauge`, what ``--lights``
   does), the bounced light taken out likewise and the finish then fitted again;
@@ -50,6 +51,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -114,7 +116,7 @@ def make_set(size: int, m: int, scene_brdf: str, gauge_brdf: str, eight_bit: boo
     circle = (centre, centre, radius)  # its rim margin measured, as colorps reconstruct does
     gauge = Gauge.from_sphere((gauge_size, gauge_size), *circle, camera=camera,
                               rim_margin=rim_margin(gauge_stack, circle, camera))
-    return scene, lights, stack, gauge_stack, gauge
+    return scene, lights, stack, gauge_stack, gauge, camera
 
 
 def spiked(stack: np.ndarray, rate: float, seed: int) -> np.ndarray:
@@ -166,6 +168,43 @@ def solved_as_colorps_does(stack, gauge_stack, gauge, settings, mask, first=None
     first = solve(stack) if first is None else first
     return without_interreflections(read_scene or (lambda: stack), first, solve, gauge,
                                     gauge_stack)[:2]
+
+
+def solved_by_reconstruct(stack, gauge_stack, gauge, mask, eight_bit: bool, *,
+                          camera=None, options: Options | None = None):
+    """``colorps reconstruct``'s orchestrator (:func:`colorps.pipeline.reconstruct_files`)
+    on the set written to files: float EXRs, or 8-bit sRGB PNGs for an 8-bit set, the
+    gauge's circle given (``--sphere``), the scene's mask, ``camera`` (``--camera``, None:
+    orthographic). So the gauge column is what a user gets: the bounced light taken
+    out, and a scene whose finish is not its gauge's solved again with the gauge's
+    lights and its own finish. The result and report.json's ``gauge_check``."""
+    import json
+    import tempfile
+
+    from colorps.inputs import CaptureFiles
+    from colorps.io import srgb_encode, write_image
+    from colorps.pipeline import reconstruct_files
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        for name, images in (("scene", stack), ("gauge", gauge_stack)):
+            for k, image in enumerate(images):
+                if eight_bit:  # the codes the set was quantised to
+                    write_image(folder / f"{name}_{k:02d}.png",
+                                np.round(srgb_encode(image) * 255).astype(np.uint8), dtype="uint8")
+                else:
+                    write_image(folder / f"{name}_{k:02d}.exr", image)
+        write_image(folder / "mask.png", mask.astype(np.uint8) * 255, dtype="uint8")
+        ext = "png" if eight_bit else "exr"
+        inputs = CaptureFiles(str(folder / f"scene_*.{ext}"), gauge=str(folder / f"gauge_*.{ext}"),
+                              sphere=gauge.sphere, mask=folder / "mask.png",
+                              camera="orthographic" if camera is None else camera)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # (the route is recorded in report.json)
+            result = reconstruct_files(inputs, folder / "out", options=options,
+                                       progress=False)
+        report = json.loads((folder / "out" / "report.json").read_text())
+    return result, report.get("gauge_check", {})
 
 
 def run_virtual(stack, lights: Lights, mask, settings=None):
@@ -232,13 +271,16 @@ def main(argv=None) -> None:
     for name, m, scene_brdf, gauge_brdf, eight_bit, extra in sets:
         if args.only not in name:
             continue
-        scene, lights, stack, gauge_stack, gauge = make_set(args.size, m, scene_brdf,
-                                                            gauge_brdf, eight_bit, **extra)
+        scene, lights, stack, gauge_stack, gauge, camera = make_set(
+            args.size, m, scene_brdf, gauge_brdf, eight_bit, **extra)
         mask = scene.mask
         t0 = time.perf_counter()
         clip = {"clip_level": 1.0} if "gauge_exposure" in extra else {}
-        result = solved_as_colorps_does(stack, gauge_stack, gauge, Options(**clip), mask)[0]
+        result, checked = solved_by_reconstruct(stack, gauge_stack, gauge, mask, eight_bit,
+                                                camera=camera, options=Options(**clip))
         seconds = time.perf_counter() - t0
+        if checked.get("finish", {}).get("taken"):
+            name += " (the finish route)"
         if extra.get("interreflection"):  # the bounced light left in
             kept = reconstruct(stack, gauge_stack, gauge, mask=mask, **clip)
             mean, median, solved = scores(kept.normals, kept.solved, scene.normals, mask)
@@ -247,8 +289,7 @@ def main(argv=None) -> None:
                   f"{coverage(kept, scene.normals, mask):.0%} | |", flush=True)
         plain = None
         if extra.get("perspective"):  # the same images, the gauge read orthographically
-            flat = Gauge.from_sphere(gauge.mask.shape, *gauge.sphere, rim_margin=gauge.rim_margin)
-            plain = reconstruct(stack, gauge_stack, flat, mask=mask)
+            plain = solved_by_reconstruct(stack, gauge_stack, gauge, mask, eight_bit)[0]
         calibrated = Lights(lights.directions[:, 0, :], lights.colours[:, 0, :])
         virtual = run_virtual(stack, calibrated, mask)
         ls = least_squares(stack, lights.directions[:, 0, :], mask)
