@@ -144,8 +144,10 @@ class Options:
     finish_check : bool
         Files, gauge mode: when the scene matches a matte gauge far worse than
         its noise explains (:func:`colorps.gauge_check.finish_differs`: the
-        gauge's finish is not the scene's), solve it again with the lights
-        measured on the gauge and the scene's own fitted finish
+        gauge's finish is not the scene's; a little worse,
+        :func:`colorps.gauge_check.finish_may_differ`, once the scene's own
+        fitted finish shows it), solve it again with the lights measured on the
+        gauge and the scene's own fitted finish
         (:func:`colorps.gauge_finish.with_gauge_lights`), and keep that when it
         matches clearly better (:func:`colorps.gauge_check.judge_finish`).
     interreflections : bool

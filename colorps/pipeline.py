@@ -38,6 +38,7 @@ from .gauge_check import (
     check_gauge,
     check_lights,
     finish_differs,
+    finish_may_differ,
     judge_finish,
     lens_hint,
     noisier_scene,
@@ -69,12 +70,7 @@ from .light_axes import check_axes
 from .lights import read_lights
 from .memory import TilePlan, kept_grids_mib, plan_tiles, release_freed_memory
 from .options import Options
-from .outputs import (
-    TILED_EXR_SIDE,
-    Exports,
-    prepare_output_dir,
-    save_reconstruction,
-)
+from .outputs import TILED_EXR_SIDE, Exports, prepare_output_dir, save_reconstruction
 from .pairing import (
     check_natural_order,
     check_shading_pairing,
@@ -196,7 +192,7 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                 solved_from, stacks.light_set, run, mask=mask, radius=inputs.virtual_radius,
                 camera=None if along_rays else inputs.camera, progress=progress)
         if inputs.lights is None and run.options.finish_check and \
-                finish_differs(result.stats.model_scale, checked):
+                finish_may_differ(result.stats.model_scale, checked):
             if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
                 solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
             result, run, virtual, lights = _with_gauge_lights(
@@ -544,20 +540,24 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
     (recorded in ``checked``). ``scene``: what ``result`` was solved from (None: a tiled
     run's, not tried). Returns (result, settings, finish and fits or None, lights or None)."""
     noisier = scene is not None and noisier_scene(scene, mask, result.stats, checked)
+    asked = not finish_differs(result.stats.model_scale, checked)  # its finish asked first
     record = checked["finish"] = dict(
         residual_with_gauge=result.stats.residual_median_noise_units,
-        residual_with_gauge_lights=None, brdf=None)
+        residual_with_gauge_lights=None, brdf=None, asked_first=asked)
     try:  # the gauge's lights may not be measurable (a small or one-sided sphere)
         if scene is not None:
             other, other_run, finish, lights, own = with_gauge_lights(
                 scene, gauge_stack, gauge, run, mask=mask, radius=inputs.virtual_radius,
                 camera=inputs.camera, progress=progress,
-                wanted=shows_finish if noisier else None)
+                wanted=shows_finish if noisier or asked else None)
             record.update(brdf=finish[0].as_dict(), gauge_brdf=own.as_dict())
             if other is not None:
                 record["residual_with_gauge_lights"] = other.stats.residual_median_noise_units
     except InputError as error:
         record["failed"] = str(error)
+    if asked and not noisier and record["residual_with_gauge_lights"] is None:
+        record["taken"] = False  # its finish is the gauge's, or not tried: nothing to say
+        return result, run, None, None
     if judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
                     noisier=checked["scene_noise_over_gauge"] if noisier else None,
                     finish=finish[0] if record["brdf"] else None,
