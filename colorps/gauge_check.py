@@ -35,6 +35,7 @@ from .brdf import BRDF
 from .camera import Camera
 from .errors import CameraWarning, EncodingWarning, GaugeError, GaugeWarning
 from .gauge import Gauge
+from .geometry import angular_error
 from .lights import Lights
 from .noise import NoiseModel, estimate_noise, lit_measurements
 
@@ -42,8 +43,9 @@ if TYPE_CHECKING:
     from .results import ReconstructionStats
 
 __all__ = ["ENCODING_RATIO", "POOR_FIT", "as_linear", "check_gauge", "check_lights",
-           "finish_differs", "finish_may_differ", "judge_finish", "lambertian_fit", "lens_hint",
-           "lights_fit", "noisier_scene", "shows_finish", "sphere_fit"]
+           "finish_differs", "finish_may_differ", "judge_finish", "lambertian_fit", "lens_bias",
+           "lens_hint", "lights_fit", "noisier_scene", "shows_finish", "sphere_fit",
+           "with_lens_bias"]
 
 # ---------------------------------------------------------------- tuning
 #: Relative RMS residual of the Lambertian sphere fit above which the gauge
@@ -380,8 +382,9 @@ def lens_hint(stack: np.ndarray, gauge: Gauge, first_file: Path) -> dict | None:
     Returns
     -------
     dict or None
-        ``focal_px``, ``residual`` and ``orthographic_residual``; None for a
-        gauge that is not a matte sphere.
+        ``focal_px``, ``residual`` and ``orthographic_residual``, and when it
+        warns ``normals_off_deg`` (the median of :func:`lens_bias` on the
+        sphere); None for a gauge that is not a matte sphere.
     """
     if gauge.sphere is None:
         return None
@@ -394,18 +397,11 @@ def lens_hint(stack: np.ndarray, gauge: Gauge, first_file: Path) -> dict | None:
     orthographic = _sphere_fit_pixels(pixels, gauge.normals[ys, xs])
     if not orthographic < MATTE_FIT:
         return None
-    # The sphere's box alone, with the whole image's principal point.
-    h, w = gauge.mask.shape
-    y0, x0 = max(0, int(cy - r) - 2), max(0, int(cx - r) - 2)
-    box = (min(h, int(cy + r) + 3) - y0, min(w, int(cx + r) + 3) - x0)
     fits = np.full(LENS_FOCAL_RADII.size, np.nan)
     for k, focal in enumerate(LENS_FOCAL_RADII):
-        camera = Camera(focal * r, focal * r, (w - 1) / 2 - x0, (h - 1) / 2 - y0)
-        try:
-            normals = Gauge.from_sphere(box, cx - x0, cy - y0, r, camera=camera).normals
-        except GaugeError:  # (a sphere that lens would not show whole)
-            continue
-        fits[k] = _sphere_fit_pixels(pixels, normals[ys - y0, xs - x0])
+        normals = _through_lens(gauge, focal * r, ys, xs)
+        if normals is not None:  # (else a sphere that lens would not show whole)
+            fits[k] = _sphere_fit_pixels(pixels, normals)
     if not np.isfinite(fits).any():
         return None
     best = int(np.nanargmin(fits))
@@ -418,14 +414,71 @@ def lens_hint(stack: np.ndarray, gauge: Gauge, first_file: Path) -> dict | None:
     record = dict(focal_px=float(focal * r), residual=float(fits[best]),
                   orthographic_residual=float(orthographic))
     if inside and fits[best] < LENS_BETTER * orthographic:
+        record["normals_off_deg"] = float(np.median(lens_bias(gauge, record["focal_px"],
+                                                              gauge.normals[ys, xs])))
         warnings.warn(
             f"{first_file}: the gauge shades as a matte sphere seen through a lens of focal "
             f"length about {record['focal_px']:.0f} px (its Lambertian fit leaves "
             f"{fits[best]:.4f} then, {orthographic:.4f} read orthographically, with the "
             "principal point at the image's centre): without --camera its normals are read "
-            "as if seen from infinitely far, which can cost a degree or more; give --camera "
-            "FOCAL_PX or the camera's K.txt", CameraWarning, stacklevel=3)
+            f"as if seen from infinitely far, {record['normals_off_deg']:.2f} degrees off "
+            "(each normal's uncertainty takes that in); give --camera FOCAL_PX or the "
+            "camera's K.txt", CameraWarning, stacklevel=3)
     return record
+
+
+def lens_bias(gauge: Gauge, focal_px: float, normals: np.ndarray) -> np.ndarray:
+    """How far (degrees) normals matched on ``gauge`` read orthographically are off
+    if it was seen through a pinhole of ``focal_px`` (principal point at the
+    image's centre): at each of ``normals`` (..., 3; NaN where not solved), the
+    angle between the orthographic normal and the lens's at the gauge pixel of
+    the nearest orthographic normal (on a LENS_PIXELS sample of the sphere)."""
+    from scipy.spatial import cKDTree
+
+    ys, xs = np.nonzero(gauge.mask)
+    pick = np.linspace(0, ys.size - 1, min(LENS_PIXELS, ys.size)).astype(int)
+    ys, xs = ys[pick], xs[pick]
+    through = _through_lens(gauge, focal_px, ys, xs)
+    seen = (through != 0).any(axis=1)
+    ys, xs, off = ys[seen], xs[seen], angular_error(through[seen], gauge.normals[ys[seen],
+                                                                                 xs[seen]])
+    flat = np.asarray(normals, np.float64).reshape(-1, 3)
+    bias = np.full(flat.shape[0], np.nan)
+    known = np.isfinite(flat).all(axis=1)
+    bias[known] = off[cKDTree(gauge.normals[ys, xs]).query(flat[known])[1]]
+    return bias.reshape(np.shape(normals)[:-1])
+
+
+def with_lens_bias(result, gauge: Gauge, record: dict):
+    """``result`` (a :class:`~colorps.Reconstruction` matched on ``gauge`` read
+    orthographically) with :func:`lens_bias` added to its 68 % radii where
+    :func:`lens_hint` found a lens (``record``'s ``lens_fit`` has
+    ``normals_off_deg``): the bias through a lens one step of LENS_FOCAL_RADII
+    shorter than the one found (the fit's bracket: the bias goes as one over the
+    focal length, and the errors of a lens read orthographically are that bias
+    to within a few per cent); else ``result`` as it is."""
+    lens_fit = record.get("lens_fit") or {}
+    if "normals_off_deg" not in lens_fit:
+        return result
+    shortest = lens_fit["focal_px"] * LENS_FOCAL_RADII[0] / LENS_FOCAL_RADII[1]
+    return result.with_uncertainty_added(lens_bias(gauge, shortest, result.normals))
+
+
+def _through_lens(gauge: Gauge, focal_px: float, ys: np.ndarray,
+                  xs: np.ndarray) -> np.ndarray | None:
+    """The (P, 3) normals at pixels (``ys``, ``xs``) of ``gauge``'s sphere seen
+    through a pinhole of ``focal_px`` with the principal point at its image's
+    centre (zero off that sphere); None where that lens would not show it whole."""
+    cx, cy, r = gauge.sphere
+    h, w = gauge.mask.shape
+    y0, x0 = max(0, int(cy - r) - 2), max(0, int(cx - r) - 2)
+    box = (min(h, int(cy + r) + 3) - y0, min(w, int(cx + r) + 3) - x0)  # the sphere's alone
+    camera = Camera(focal_px, focal_px, (w - 1) / 2 - x0, (h - 1) / 2 - y0)
+    try:
+        seen = Gauge.from_sphere(box, cx - x0, cy - y0, r, camera=camera)
+    except GaugeError:
+        return None
+    return seen.normals[ys - y0, xs - x0]
 
 
 def finish_differs(model_scale: float, record: dict, above: float = FINISH_HINT_SCALE) -> bool:

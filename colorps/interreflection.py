@@ -31,7 +31,6 @@ not light a matte surface sends its neighbours.
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from collections.abc import Callable
 
@@ -327,12 +326,7 @@ def with_scale_uncertainty(result, moved: np.ndarray):
     normal (``moved``, degrees: :func:`moved_by`), added in quadrature. For a
     result solved again from the corrected measurements (a finish fitted again),
     ``moved`` is the correction's own."""
-    radius = np.sqrt(result.uncertainty ** 2 + (SCALE_UNCERTAINTY * moved) ** 2)
-    inside = radius[result.solved & np.isfinite(radius)]
-    stats = dataclasses.replace(
-        result.stats, uncertainty_median=float(np.median(inside)) if inside.size else None,
-        uncertainty_p95=float(np.percentile(inside, 95)) if inside.size else None)
-    return dataclasses.replace(result, uncertainty=radius.astype(np.float32), stats=stats)
+    return result.with_uncertainty_added(SCALE_UNCERTAINTY * moved)
 
 
 _NO_SHADOWS = "too few cast-shadow measurements to fit its scale"

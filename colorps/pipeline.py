@@ -1,18 +1,17 @@
 """Files in, files out: the work behind ``colorps reconstruct``.
 
-:func:`reconstruct_files` reads top to bottom, each step a call into its own
-module: check the output folder (:mod:`colorps.outputs`), read the headers and
-plan the run (:mod:`colorps.io`, :func:`colorps.memory.plan_tiles`), read the
-scene, resolve the settings against the files (:func:`colorps.resolve.resolve`),
-make the gauge (photographed: :meth:`colorps.Gauge.from_sphere`; rendered:
-:func:`colorps.virtual.virtual_gauge`), match (:func:`colorps.reconstruct`, or
-:func:`colorps.tiles.reconstruct_tiled`), take out the light a concave object
-bounces onto itself (:func:`colorps.interreflection.without_interreflections`;
-a rendered gauge's finish fitted again without it), try the gauge's lights when
-the scene's finish looks another (:func:`colorps.gauge_finish.with_gauge_lights`;
-the bounced light then taken out again with its shape and finish),
-integrate the height (:func:`colorps.integrate`) while the maps are written
-(:func:`colorps.outputs.save_reconstruction`). Option values arrive converted
+:func:`reconstruct_files` reads top to bottom, each step a call into its own module: check
+the output folder (:mod:`colorps.outputs`), read the headers and plan the run
+(:mod:`colorps.io`, :func:`colorps.memory.plan_tiles`), read the scene, resolve the
+settings against the files (:func:`colorps.resolve.resolve`), make the gauge (photographed:
+:meth:`colorps.Gauge.from_sphere`; rendered: :func:`colorps.virtual.virtual_gauge`), match
+(:func:`colorps.reconstruct`, or :func:`colorps.tiles.reconstruct_tiled`), take out the
+light a concave object bounces onto itself
+(:func:`colorps.interreflection.without_interreflections`; a rendered gauge's finish fitted
+again without it), try the gauge's lights when the scene's finish looks another
+(:func:`colorps.gauge_finish.with_gauge_lights`; the bounced light then taken out again
+with its shape and finish), integrate the height (:func:`colorps.integrate`) while the maps
+are written (:func:`colorps.outputs.save_reconstruction`). Option values arrive converted
 (:class:`~colorps.Options`); the command line only parses arguments.
 """
 
@@ -43,6 +42,7 @@ from .gauge_check import (
     lens_hint,
     noisier_scene,
     shows_finish,
+    with_lens_bias,
 )
 from .gauge_finish import with_gauge_lights
 from .hygiene import check_contents, check_exposures, check_names, check_stack_exposures
@@ -203,10 +203,10 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                     result, run, virtual, lights,
                     lambda: _read_scene(stacks, run.options, plan, progress, True)[0],
                     mask, inputs, progress, bounced)
-        del solved_from
         if moved is not None and result is not corrected:  # solved again: the scale's radius
             result = with_scale_uncertainty(result, moved)
-        del corrected, moved
+        del solved_from, corrected, moved
+        result = with_lens_bias(result, gauge, checked)  # a lens read orthographically
         report = _report(inputs, stacks, run, plan, gauge, virtual, names, bounced)
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
         report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
@@ -557,8 +557,7 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
         record["failed"] = str(error)
     if asked and not noisier and record["residual_with_gauge_lights"] is None:
         record["taken"] = False  # its finish is the gauge's, or not tried: nothing to say
-        return result, run, None, None
-    if judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
+    elif judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
                     noisier=checked["scene_noise_over_gauge"] if noisier else None,
                     finish=finish[0] if record["brdf"] else None,
                     gauge_finish=own if record["brdf"] else None):
@@ -568,12 +567,12 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
 
 def _bounced_again(result, run: Resolved, finish, lights, read_scene, mask,
                    inputs: CaptureFiles, progress: bool, bounced: dict):
-    """The gauge's lights' result (``finish``: the scene's own) solved again, the
-    bounced light estimated from its shape (another finish's normals had given it
-    another), scaled against that finish, taken out of the measurements as read
-    (``read_scene()``), the finish fitted again (:func:`virtual.with_own_finish`);
-    kept when it explains the scene at least as well. Returns (result, settings,
-    finish and its fits); its record is ``bounced``'s ``with_scene_finish``."""
+    """The gauge's lights' result (``finish``: the scene's own) solved again, the bounced
+    light estimated from its shape (another finish's normals had given it another),
+    scaled against that finish, taken out of the measurements as read (``read_scene()``),
+    the finish fitted again (:func:`virtual.with_own_finish`); kept when it explains the
+    scene at least as well. Returns (result, settings, finish and its fits); its record
+    is ``bounced``'s ``with_scene_finish``."""
     if _view_matters(inputs, finish):
         bounced["with_scene_finish"] = dict(skipped=_MATCHED_AGAIN)
         return result, run, finish

@@ -257,6 +257,16 @@ class Reconstruction:
         """(H, W) uint8 number of lights dropped from each pixel's match."""
         return light_masks.count(self.dropped_lights).astype(np.uint8)
 
+    def with_uncertainty_added(self, radius) -> Reconstruction:
+        """A copy whose 68 % radii (degrees) have ``radius`` (degrees, a scalar or
+        an (H, W) map: an error this result's own fit cannot see) added in
+        quadrature, their median and p95 in ``stats`` again."""
+        widened = np.sqrt(self.uncertainty ** 2 + np.square(radius)).astype(np.float32)
+        inside = widened[self.solved & np.isfinite(widened)]
+        stats = dataclasses.replace(self.stats, uncertainty_median=_median(inside),
+                                    uncertainty_p95=_percentile(inside, 95))
+        return dataclasses.replace(self, uncertainty=widened, stats=stats)
+
     def with_height(self, height: np.ndarray, seconds: float | None = None
                     ) -> Reconstruction:
         """A copy with a height map (and the seconds its integration took)."""

@@ -194,6 +194,48 @@ def test_cli_camera_from_k_txt_is_used_and_recorded(tmp_path, capsys):
     assert not (tmp_path / "bad").exists()
 
 
+def test_a_lens_left_out_widens_every_normals_uncertainty(tmp_path, capsys):
+    """The same capture read without its camera: every normal is off by about the
+    angle between the orthographic and the true normal of the gauge pixel it matched
+    (here 2-13 degrees). The lens hint finds the focal length (417 px for 400),
+    warns with the median bias (``normals_off_deg``), and adds each pixel's to its
+    68 % radius (through a lens a step shorter): the radii then hold most errors and
+    rank them (the noise's alone held almost none)."""
+    from colorps.cli import main
+    from colorps.io import read_image, write_image
+
+    camera = Camera(400.0, 400.0)
+    shape = (200, 260)
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    lights = np.column_stack([0.57 * np.cos(phi), 0.57 * np.sin(phi), np.full(8, 0.82)])
+    rng = np.random.default_rng(2)
+    gauge_stack, _, _ = render_sphere(camera, shape, (-1.3, 0.5, -9.0), lights)
+    scene_stack, truth, hit = render_sphere(camera, shape, (1.5, -0.4, -9.5), lights)
+    for k in range(8):
+        write_image(tmp_path / f"scene_{k}.exr", scene_stack[k] + rng.normal(
+            0, 0.002, scene_stack[k].shape).astype(np.float32))
+        write_image(tmp_path / f"gauge_{k}.exr", gauge_stack[k] + rng.normal(
+            0, 0.002, gauge_stack[k].shape).astype(np.float32))
+    mask = hit & (truth[..., 2] > 0.3)
+    write_image(tmp_path / "mask.png", mask.astype(np.float32), dtype="uint8")
+    cx, cy, r = sphere_in_view(camera, shape, (-1.3, 0.5, -9.0), 1.0)
+    assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
+                 str(tmp_path / "gauge_*.exr"), "--sphere", f"{cx},{cy},{r}", "--mask",
+                 str(tmp_path / "mask.png"), "--quiet", "--no-height", "--no-finish-check",
+                 "--out", str(tmp_path / "out")]) == 0
+    assert "degrees off (each normal's uncertainty takes that in)" in capsys.readouterr().err
+    normals = read_image(tmp_path / "out" / "normal.exr")[0]
+    radius = read_image(tmp_path / "out" / "uncertainty.exr")[0][..., 0]
+    solved = mask & np.isfinite(radius)
+    errors = angular_error(normals[solved], truth[solved])
+    off = json.loads((tmp_path / "out" / "report.json").read_text())["gauge_check"][
+        "lens_fit"]["normals_off_deg"]
+    assert np.median(errors) > 2.0
+    assert off == pytest.approx(np.median(errors), rel=0.3)
+    assert np.mean(errors <= radius[solved]) > 0.9  # a bias, not a scatter: held
+    assert np.corrcoef(errors, radius[solved])[0, 1] > 0.8  # the worst ranked worst
+
+
 def test_camera_with_a_light_file_matches_again_along_each_ray(tmp_path, capsys):
     """--lights renders the gauge for a view along the optical axis: with a fitted
     highlight (which depends on the view) and a camera, the run matches again
