@@ -110,6 +110,23 @@ def smiley_capture(folder, roughness: float, scene_noise: float = 0.002):
     return scene, lighting, colours
 
 
+def varnished_smiley(folder, strength: float, scene_noise: float):
+    """A Lambertian smiley under a white GGX coat (alpha 0.3) of Fresnel reflectance
+    ``strength`` and 16 coloured lights, with its Lambertian gauge (noise 0.002),
+    written to ``folder`` with the mask; returns the scene."""
+    from colorps.finishes import Gloss
+
+    lighting, _ = coloured_lights(16)
+    scene = synth.smiley_surface(96)
+    stack = synth.render(scene, lighting, noise=scene_noise, seed=2,
+                         gloss=Gloss(strength, model="ggx", alpha=0.3))
+    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
+        write_image(folder / f"scene_{k:02d}.exr", image)
+        write_image(folder / f"gauge_{k:02d}.exr", ball)
+    write_image(folder / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    return scene
+
+
 @pytest.fixture(scope="module")
 def rough_capture(tmp_path_factory):
     """A rough (Oren-Nayar 0.3) smiley under 16 coloured lights, photographed with a
@@ -214,16 +231,9 @@ def test_a_thin_varnish_is_asked_for_its_finish(tmp_path, capsys):
     FINISH_HINT_SCALE, so its own finish is asked first (FINISH_ASK_SCALE). It
     shows the highlight, the gauge's lights with it match far better, and the
     normals come out 0.13 degrees off instead of 0.6."""
-    from colorps.finishes import Gloss
     from colorps.gauge_check import FINISH_ASK_SCALE, FINISH_HINT_SCALE
 
-    lighting, _ = coloured_lights(16)
-    scene = synth.smiley_surface(96)
-    stack = synth.render(scene, lighting, noise=0.002, seed=2, gloss=Gloss(0.03, "ggx", alpha=0.3))
-    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
-        write_image(tmp_path / f"scene_{k:02d}.exr", image)
-        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
-    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    scene = varnished_smiley(tmp_path, 0.03, scene_noise=0.002)
     gauge = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto"]
     assert _reconstruct(tmp_path, tmp_path / "gauge_only", *gauge, "--no-finish-check") == 0
     scale = json.loads((tmp_path / "gauge_only" / "report.json").read_text())["statistics"][
@@ -310,16 +320,7 @@ def test_a_glossy_scene_noisier_than_its_gauge_takes_its_own_finish(tmp_path, ca
     plastic pot against a lone sphere): the residuals cannot tell, but its own
     fitted finish has a highlight the matte gauge has not, so that solution is
     taken, and it is closer to the truth than the gauge's."""
-    from colorps.finishes import Gloss
-
-    lighting, colours = coloured_lights(16)
-    scene = synth.smiley_surface(96)
-    stack = synth.render(scene, lighting, noise=0.02, seed=2,
-                         gloss=Gloss(0.04, model="ggx", alpha=0.3))
-    for k, (image, ball) in enumerate(zip(stack, sphere_stack(lighting, noise=0.002))):
-        write_image(tmp_path / f"scene_{k:02d}.exr", image)
-        write_image(tmp_path / f"gauge_{k:02d}.exr", ball)
-    write_image(tmp_path / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    scene = varnished_smiley(tmp_path, 0.04, scene_noise=0.02)
     gauge = ["--gauge", str(tmp_path / "gauge_*.exr"), "--sphere", "auto"]
     assert _reconstruct(tmp_path, tmp_path / "gauge_only", *gauge, "--no-finish-check") == 0
     assert _reconstruct(tmp_path, tmp_path / "out", *gauge) == 0
