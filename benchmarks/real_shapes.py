@@ -300,7 +300,8 @@ def main(argv=None) -> None:
         if plain is not None:
             mean, median, solved = scores(plain.normals, plain.solved, scene.normals, mask)
             print(f"| (the same gauge read without the camera) | {mean:.2f} / {median:.2f} / "
-                  f"{solved:.2%} | | | | | |", flush=True)
+                  f"{solved:.2%} | | | | {coverage(plain, scene.normals, mask):.0%} | |",
+                  flush=True)
         if scene_brdf != gauge_brdf or "gauge_roughness" in extra:
             # the gauge's lights, for the scene's own finish
             measured, _ = matte_sphere_lights(gauge_stack, gauge.sphere)
