@@ -558,9 +558,9 @@ def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: 
     if asked and not noisier and record["residual_with_gauge_lights"] is None:
         record["taken"] = False  # its finish is the gauge's, or not tried: nothing to say
     elif judge_finish(record, stacks.scene_paths[0] if noisier else stacks.gauge_paths[0],
-                    noisier=checked["scene_noise_over_gauge"] if noisier else None,
-                    finish=finish[0] if record["brdf"] else None,
-                    gauge_finish=own if record["brdf"] else None):
+                      noisier=checked["scene_noise_over_gauge"] if noisier else None,
+                      finish=finish[0] if record["brdf"] else None,
+                      gauge_finish=own if record["brdf"] else None):
         return other, other_run, finish, lights
     return result, run, None, None
 
