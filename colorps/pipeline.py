@@ -534,8 +534,8 @@ def _left_in(result, why: str, advice: str) -> dict:
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,
                        mask, inputs: CaptureFiles, checked: dict, progress: bool, scene):
     """A run whose gauge explains its scene poorly, solved again with the gauge's lights
-    and the scene's own finish (:func:`gauge_finish.with_gauge_lights`; a scene
-    :func:`gauge_check.noisier_scene` than its gauge matched with it only when that
+    and the scene's own finish (:func:`gauge_finish.with_gauge_lights`; a scene noisier
+    than its gauge, or matched only a little worse, matched with it only when that
     :func:`gauge_check.shows_finish`), kept as :func:`gauge_check.judge_finish` says
     (recorded in ``checked``). ``scene``: what ``result`` was solved from (None: a tiled
     run's, not tried). Returns (result, settings, finish and fits or None, lights or None)."""

@@ -323,7 +323,7 @@ def fit_scene_brdf(scene, lights: Lights, options: Options | Resolved | None = N
         for round_ in range(fits):
             brdf, record = _fit_round(data, lights, brdf, quick, mask, radius, rng,
                                       SETTLE_ROUNDS if round_ == 0 else 0,
-                                      held_finish and held_finish.falloff,
+                                      None if held_finish is None else held_finish.falloff,
                                       views)
             history.append(dict(round=round_ + 1, **record))
             if progress:
