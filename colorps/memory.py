@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import InputError
+from .io import check_decoded_size
 from .tables import TABLE_CACHE_MIB
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "TilePlan",
     "available_memory_bytes",
     "cgroup_available_bytes",
+    "check_input_size",
     "kept_grids_mib",
     "memory_limit",
     "plan_tiles",
@@ -296,3 +298,27 @@ def release_freed_memory() -> None:
         libc.malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+def check_input_size(scene_paths, scene_infos, options, plan: TilePlan, *,
+                     light_file: bool) -> None:
+    """Refuse a scene that would not fit in ``options.max_input_gib`` (GiB) whole
+    or a tile at a time (``plan``), or a tiled run that cannot fit its noise or
+    finish on the whole scene (``light_file``: a virtual-gauge run)."""
+    limit = options.max_input_gib * 2 ** 30
+    if plan.rows is None:
+        check_decoded_size(scene_infos, limit, name="scene")
+        return
+    m, info = len(scene_paths), scene_infos[0]
+    tile_bytes = 4 * m * info.channels * info.width * min(plan.rows, info.height)
+    if tile_bytes > limit:  # one tile's stack is held at a time
+        raise InputError(f"{scene_paths[0]}: a tile of {plan.rows} rows of "
+                         f"{m} images takes {tile_bytes / 2 ** 30:.1f} GiB, more than "
+                         f"--max-input-gib {options.max_input_gib:g}; use fewer rows (--tile)")
+    if light_file and "auto" in (options.read_noise, options.gain):
+        raise InputError(f"a tiled run ({plan.why}) with --lights needs --read-noise and "
+                         "--gain: the noise of a virtual-gauge run is fitted to the whole "
+                         "scene at once")
+    if light_file and options.brdf == "fitted":
+        raise InputError(f"a tiled run ({plan.why}) with --lights needs --brdf lambert: the "
+                         "finish of a virtual-gauge run is fitted to the whole scene at once")

@@ -29,7 +29,7 @@ import numpy as np
 from . import __version__
 from ._blas import one_blas_thread
 from ._pages import small_pages
-from .errors import InputError, InterreflectionWarning
+from .errors import InputError, InterreflectionWarning, LowSolvedWarning
 from .figures import overview_step
 from .gauge import Gauge, find_sphere, rim_margin
 from .gauge_check import (
@@ -57,7 +57,6 @@ from .interreflection import (
     without_interreflections,
 )
 from .io import (
-    check_decoded_size,
     check_stack_files,
     expand_paths,
     read_image,
@@ -68,7 +67,13 @@ from .io import (
 )
 from .light_axes import check_axes
 from .lights import read_lights
-from .memory import TilePlan, kept_grids_mib, plan_tiles, release_freed_memory
+from .memory import (
+    TilePlan,
+    check_input_size,
+    kept_grids_mib,
+    plan_tiles,
+    release_freed_memory,
+)
 from .options import Options
 from .outputs import TILED_EXR_SIDE, Exports, prepare_output_dir, save_reconstruction
 from .pairing import (
@@ -81,7 +86,7 @@ from .pairing import (
 )
 from .reconstruct import reconstruct
 from .resolve import Resolved, StackModel, resolve
-from .results import Reconstruction, RunClock, check_solved
+from .results import Reconstruction, RunClock, check_solved, say_low_solved
 from .tables import GaugeTables
 from .tiles import StackFiles, dask_client, reconstruct_tiled
 from .virtual import (
@@ -150,7 +155,8 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         plan = plan_tiles(stacks.shape, tile=options.tile,
                           memory_limit_gib=options.memory_limit_gib, scheduler=scheduler)
         options = options.replace(tile=plan.rows)
-        _check_memory(stacks, inputs, options, plan)
+        check_input_size(stacks.scene_paths, stacks.scene_infos, options, plan,
+                         light_file=inputs.lights is not None)
         stacks = _with_gauge_headers(stacks, inputs, options)
         inputs = inputs.with_exif_camera([*stacks.gauge_infos[:1], *stacks.scene_infos[:1]])
         mask = None
@@ -160,53 +166,13 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
                 raise InputError(f"{inputs.mask}: the mask selects no pixel (non-zero = solve)")
         clock.start("reading")
         scene, names = _read_scene(stacks, options, plan, progress)
-        clock.start("gauge")
-        run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
-                      gauge=None if inputs.lights is not None else
-                      StackModel.of_file(stacks.gauge_infos[0], options.encoding))
-        gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
-                                                                       mask, progress)
-        clock.start("reconstruct")
-        along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
-        view = (stacks.light_set, virtual, inputs.camera) if along_rays else None
-        tables = _solves_tables(run, stacks.shape)
-        if plan.rows is not None:
-            with dask_client(scheduler) as client:
-                result, preview = reconstruct_tiled(
-                    scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
-                    progress=progress, return_preview=True)
-            del scene  # not needed past here: free it for integration and writing
-        else:
-            handed = [scene]
-            del scene  # held by ``handed`` alone, so that the reconstruction can free it
-            result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, view,
-                                                 progress, tables)
-        check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
-        checked = _with_axes(checked, result, inputs)
-        result, solved_from, bounced, moved = _without_interreflections(
-            result, stacks, gauge_stack, gauge, run, mask, plan, view, progress, tables)
-        del tables  # (its grids)
-        corrected = result
-        if virtual is not None and solved_from is not None:  # its finish fitted again
-            result, run, virtual = with_own_finish(  # (seen along the axis if along_rays)
-                solved_from, stacks.light_set, run, mask=mask, radius=inputs.virtual_radius,
-                camera=None if along_rays else inputs.camera, progress=progress)
-        if inputs.lights is None and run.options.finish_check and \
-                finish_may_differ(result.stats.model_scale, checked):
-            if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
-                solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
-            result, run, virtual, lights = _with_gauge_lights(
-                result, stacks, gauge_stack, gauge, run, mask, inputs, checked, progress,
-                solved_from)
-            if virtual is not None and bounced.get("passes"):
-                result, run, virtual = _bounced_again(
-                    result, run, virtual, lights,
-                    lambda: _read_scene(stacks, run.options, plan, progress, True)[0],
-                    mask, inputs, progress, bounced)
-        if moved is not None and result is not corrected:  # solved again: the scale's radius
-            result = with_scale_uncertainty(result, moved)
-        del solved_from, corrected, moved
-        result = with_lens_bias(result, gauge, checked)  # a lens read orthographically
+        handed = [scene]
+        del scene  # held by ``handed`` alone, so that the reconstruction can free it
+        with warnings.catch_warnings():  # each pass says its share: the kept result's below
+            warnings.simplefilter("ignore", LowSolvedWarning)
+            result, preview, run, gauge, virtual, checked, bounced = _solved(
+                handed, inputs, stacks, options, mask, plan, clock, scheduler, progress)
+        say_low_solved(result)
         report = _report(inputs, stacks, run, plan, gauge, virtual, names, bounced)
         report["lights_check" if inputs.lights is not None else "gauge_check"] = checked
         report["matched_along_rays"] = plan.rows is None and _view_matters(inputs, virtual)
@@ -215,6 +181,63 @@ def reconstruct_files(inputs: CaptureFiles, out, *, options: Options | None = No
         result = _save(result, out, run.options, plan, report, names, preview, overwrite, progress)
         seconds = dataclasses.replace(result.stats.seconds, run=clock.as_dict()["total"])
         return dataclasses.replace(result, stats=dataclasses.replace(result.stats, seconds=seconds))
+
+
+def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Options, mask,
+            plan: TilePlan, clock: RunClock, scheduler, progress: bool):
+    """The gauge (read, or rendered for a light file) and the scene (``handed``'s
+    one stack, let go of) solved with it, with every pass the run takes:
+    (the result kept, its preview, the run's settings, the gauge, the virtual
+    gauge's finish and fits, the gauge or lights check, the bounced light's record)."""
+    scene = handed.pop()
+    clock.start("gauge")
+    run = resolve(options, scene=StackModel.of_file(stacks.scene_infos[0], options.encoding),
+                  gauge=None if inputs.lights is not None else
+                  StackModel.of_file(stacks.gauge_infos[0], options.encoding))
+    gauge, gauge_stack, run, virtual, checked, scene = _make_gauge(inputs, stacks, scene, run,
+                                                                   mask, progress)
+    clock.start("reconstruct")
+    along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
+    view = (stacks.light_set, virtual, inputs.camera) if along_rays else None
+    tables = _solves_tables(run, stacks.shape)
+    if plan.rows is not None:
+        with dask_client(scheduler) as client:
+            result, preview = reconstruct_tiled(
+                scene, gauge_stack, gauge, run, tile=plan.rows, mask=mask, client=client,
+                progress=progress, return_preview=True)
+        del scene  # not needed past here: free it for integration and writing
+    else:
+        handed = [scene]
+        del scene  # held by ``handed`` alone, so that the reconstruction can free it
+        result, preview = _reconstruct_whole(handed, gauge_stack, gauge, run, mask, view,
+                                             progress, tables)
+    check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
+    checked = _with_axes(checked, result, inputs)
+    result, solved_from, bounced, moved = _without_interreflections(
+        result, stacks, gauge_stack, gauge, run, mask, plan, view, progress, tables)
+    del tables  # (its grids)
+    corrected = result
+    if virtual is not None and solved_from is not None:  # its finish fitted again
+        result, run, virtual = with_own_finish(  # (seen along the axis if along_rays)
+            solved_from, stacks.light_set, run, mask=mask, radius=inputs.virtual_radius,
+            camera=None if along_rays else inputs.camera, progress=progress)
+    if inputs.lights is None and run.options.finish_check and \
+            finish_may_differ(result.stats.model_scale, checked):
+        if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
+            solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
+        result, run, virtual, lights = _with_gauge_lights(
+            result, stacks, gauge_stack, gauge, run, mask, inputs, checked, progress,
+            solved_from)
+        if virtual is not None and bounced.get("passes"):
+            result, run, virtual = _bounced_again(
+                result, run, virtual, lights,
+                lambda: _read_scene(stacks, run.options, plan, progress, True)[0],
+                mask, inputs, progress, bounced)
+    if moved is not None and result is not corrected:  # solved again: the scale's radius
+        result = with_scale_uncertainty(result, moved)
+    del solved_from, corrected, moved
+    result = with_lens_bias(result, gauge, checked)  # a lens read orthographically
+    return result, preview, run, gauge, virtual, checked, bounced
 
 
 @dataclass(frozen=True)
@@ -264,28 +287,6 @@ def _with_gauge_headers(stacks: _Stacks, inputs: CaptureFiles, options: Options)
                          f"{scene_paths[0]} has {scene_infos[0].channels}")
     return dataclasses.replace(stacks, gauge_paths=gauge_paths, gauge_infos=gauge_infos,
                                exposures=check_exposures(scene_infos, gauge_infos))
-
-
-def _check_memory(stacks: _Stacks, inputs: CaptureFiles, options: Options,
-                  plan: TilePlan) -> None:
-    """Refuse what would not fit in ``--max-input-gib``, or cannot run in tiles."""
-    limit = options.max_input_gib * 2 ** 30
-    if plan.rows is None:
-        check_decoded_size(stacks.scene_infos, limit, name="scene")
-        return
-    m, h, w, c = stacks.shape
-    tile_bytes = 4 * m * c * w * min(plan.rows, h)  # one tile's stack is held at a time
-    if tile_bytes > limit:
-        raise InputError(f"{stacks.scene_paths[0]}: a tile of {plan.rows} rows of "
-                         f"{m} images takes {tile_bytes / 2 ** 30:.1f} GiB, more than "
-                         f"--max-input-gib {options.max_input_gib:g}; use fewer rows (--tile)")
-    if inputs.lights is not None and "auto" in (options.read_noise, options.gain):
-        raise InputError(f"a tiled run ({plan.why}) with --lights needs --read-noise and "
-                         "--gain: the noise of a virtual-gauge run is fitted to the whole "
-                         "scene at once")
-    if inputs.lights is not None and options.brdf == "fitted":
-        raise InputError(f"a tiled run ({plan.why}) with --lights needs --brdf lambert: the "
-                         "finish of a virtual-gauge run is fitted to the whole scene at once")
 
 
 def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: bool,

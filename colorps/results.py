@@ -21,7 +21,7 @@ import numpy as np
 from . import light_masks
 from .errors import InputError, LowSolvedWarning
 from .matching import Matches, MatchGroup
-from .reasons import reason_counts
+from .reasons import Reason, reason_counts
 
 __all__ = [
     "LOW_SOLVED_FRACTION",
@@ -34,6 +34,7 @@ __all__ = [
     "default_band_names",
     "low_solved_message",
     "run_statistics",
+    "say_low_solved",
 ]
 
 #: Below this fraction of the masked pixels solved, a LowSolvedWarning is raised.
@@ -411,8 +412,20 @@ def low_solved_message(reason: np.ndarray, mask: np.ndarray, solved: np.ndarray
         return None
     counts = reason_counts(reason[mask & ~solved])
     worst = max(counts, key=counts.get)
+    hint = ("; a background dark under every light is left out by a mask"
+            if worst == Reason.TOO_DARK.label else "")
     return (f"only {solved.sum() / n_masked:.0%} of the {n_masked} masked pixels were "
-            f"solved (mostly '{worst}': {counts[worst]} pixels)")
+            f"solved (mostly '{worst}': {counts[worst]} pixels{hint})")
+
+
+def say_low_solved(result: Reconstruction) -> None:
+    """Warn (LowSolvedWarning) when under LOW_SOLVED_FRACTION of ``result``'s
+    mask (its pixels not labelled background) was solved: once for a run's
+    kept result, whose samples, probes and passes would each say their own."""
+    message = low_solved_message(result.reason, result.reason != Reason.BACKGROUND,
+                                 result.solved)
+    if message:
+        warnings.warn(message, LowSolvedWarning, stacklevel=2)
 
 
 def check_solved(result: Reconstruction, scene_paths, gauge_paths, mask_path) -> None:

@@ -519,3 +519,24 @@ def test_the_gauges_own_finish_is_fitted_at_its_known_normals():
     held, _ = fit_brdf(observed, tilted, lighting.directions[:, 0], colours, observed > 0,
                        held_falloff=fitted.falloff)
     assert np.abs(np.array(held.falloff) - fitted.falloff).max() < 1e-3
+
+
+def test_a_dark_background_is_said_once(tmp_path, capsys):
+    """A rough scene on a black background three times its size, run without a
+    mask: under half the frame is solved, and the run says so once, for the result
+    it keeps, with what to do; the finish route's samples and passes, which had
+    each said their own share, say nothing."""
+    smiley_capture(tmp_path, 0.3)
+    for path in tmp_path.glob("scene_*.exr"):
+        write_image(path, np.pad(read_image(path)[0], ((0, 96), (0, 96), (0, 0))))
+    assert main(["reconstruct", "--scene", str(tmp_path / "scene_*.exr"), "--gauge",
+                 str(tmp_path / "gauge_*.exr"), "--sphere", "auto", "--quiet", "--no-height",
+                 "--no-viewer", "--out", str(tmp_path / "out")]) == 0
+    said = capsys.readouterr().err
+    record = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert record["gauge_check"]["finish"]["taken"]  # (the route's passes ran)
+    assert said.count("masked pixels were solved") == 1, said
+    assert "mostly 'too dark'" in said and "left out by a mask" in said
+    assert record["statistics"]["warnings"] == [
+        line.removeprefix("colorps: warning: ") for line in said.splitlines()
+        if "masked pixels were solved" in line]
