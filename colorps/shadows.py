@@ -74,7 +74,9 @@ ACCEPTED = 3.0
 #: now); 1 % took the folds from 0.12 to 4.30 degrees mean (0.26 now).
 BRIGHT_RANK = 3
 SPIKE_LIMIT = 3.0
-#: Gauge pixels between the candidates of the first, whole-gauge scan.
+#: Gauge pixels between the candidates of the first, whole-gauge scan, and of
+#: the second, around its best.
+SCAN_STEP = 8
 COARSE_STEP = 4
 #: Rounds of matching and choosing the lights.
 ROUNDS = 2
@@ -145,7 +147,9 @@ def _solve_chunk(capture: Capture, state, ys, xs, model_scale: float,
     hg, wg = capture.gauge_ov.shape[:2]
     centre = (np.full(len(ys), hg // 2), np.full(len(ys), wg // 2))
     scanned = _search(capture, ys, xs, bands, lit, gauge, centre,
-                      math.ceil(max(hg, wg) / 2 / COARSE_STEP), COARSE_STEP)
+                      math.ceil(max(hg, wg) / 2 / SCAN_STEP), SCAN_STEP)
+    scanned = _search(capture, ys, xs, bands, lit, gauge, np.divmod(np.maximum(scanned, 0), wg),
+                      SCAN_STEP // COARSE_STEP, COARSE_STEP)
     current = state.row[ys, xs]
     explained = _inliers(capture, ov, bands, ~clipped, current, model_scale) & ~clipped
     fits = [_trimmed_fit(capture, ys, xs, ov, bands, clipped, gauge, keep, rows, model_scale)
