@@ -30,7 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from colorps import Gauge, angular_error, compute_signatures, reconstruct, synth  # noqa: E402
 from colorps.io import srgb_decode, srgb_encode  # noqa: E402
+from colorps.io import DARK_CODES  # noqa: E402
 from colorps.noise import NoiseModel  # noqa: E402
+from colorps.resolve import StackModel, resolve  # noqa: E402
 
 
 def coloured_lights(m: int, theta: float) -> synth.Lighting:
@@ -108,10 +110,12 @@ def main(argv=None) -> int:
         scene = synth.smiley_surface(args.size, relief=spec.get("relief", 0.12))
         stack = synth.render(scene, lights, noise=spec["noise"], seed=1, **spec.get("render", {}))
         gauge_stack = synth.render(ball, lights, noise=spec["noise"], seed=2)
-        noise = None
+        storage = None  # float arrays
         if spec.get("bits") == 8:
             stack, gauge_stack = eight_bit(stack), eight_bit(gauge_stack)
-            noise = NoiseModel(0.0, 0.0, pixel_type="int", top_code=255, encoding="srgb")
+            clip, dark = srgb_decode(np.array([254.5, DARK_CODES]) / 255)  # as 8-bit files'
+            storage = StackModel(float(clip), float(dark), NoiseModel(
+                0.0, 0.0, pixel_type="int", top_code=255, encoding="srgb"))
         mask = scene.mask
         print(f"### {name} (m = {lights.images})\n")
         print("| method | solved | mean | median | 95th pct | seconds |")
@@ -128,7 +132,8 @@ def main(argv=None) -> int:
             changes = dict(changes)
             changes.setdefault("light_subsets", False)
             t0 = time.perf_counter()
-            result = reconstruct(stack, gauge_stack, gauge, mask=mask, noise=noise, **changes)
+            result = reconstruct(stack, gauge_stack, gauge, resolve(None, scene=storage),
+                                 mask=mask, **changes)
             seconds = time.perf_counter() - t0
             solved, mean, median, p95 = score(result.normals, result.solved, scene.normals,
                                               mask)
