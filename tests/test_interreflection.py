@@ -186,7 +186,26 @@ def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
                                                            gauge_stack)
     assert result is first and solved_from is None and record["passes"] == 0
     assert len(record["residuals"]) == 2 and record["residuals"][1] > record["residuals"][0]
-    assert len(tried) == len(SCALE_FACTORS) and 0 < max(tried) <= PROBE_PIXELS
+    # Each scale explains it alike: 1 and its two neighbours tried, no further.
+    assert len(tried) == 3 and 0 < max(tried) <= PROBE_PIXELS
+
+
+@pytest.mark.parametrize("least", [0.4, 0.63, 1.0, 1.2, 1.45])
+def test_the_scales_are_walked_downhill_to_the_least(least):
+    """The probe's walk over SCALE_FACTORS from 1 finds the factor of least
+    residual, as trying every one does, on a residual that falls then rises, in
+    at most one solve more than the least's distance from 1 in steps."""
+    from colorps.interreflection import _downhill
+
+    solved = []
+
+    def solve(stack):
+        solved.append(stack)
+        return stack
+
+    tries = _downhill(lambda factor: factor, solve, lambda f: abs(np.log(f / least)))
+    assert min(tries, key=lambda f: abs(np.log(f / least))) == least
+    assert len(solved) == len(tries) == (3 if least == 1.0 else 4)
 
 
 @pytest.fixture(scope="module")
