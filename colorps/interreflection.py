@@ -279,8 +279,8 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
             probe = _probe(reached, grid.step, first.solved)
             before = first if solved_as_read else solve(scene, probe, first.stats.model_scale)
             tries = _downhill(_without_at(scene, grid, scale, result.albedo, probe),
-                              lambda stack: solve(stack, probe, first.stats.model_scale),
-                              lambda tried: _residual(tried, probe))
+                              lambda stack, at=probe: solve(stack, at, first.stats.model_scale),
+                              lambda tried, at=probe: _residual(tried, at))
             factor = min(tries, key=lambda f: _residual(tries[f], probe))
             record["residuals"] = [_residual(before, probe), _residual(tries[factor], probe)]
             if not _explains_better(tries[factor], before, probe):  # (a glossy finish's
