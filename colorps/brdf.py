@@ -240,6 +240,26 @@ class BRDF:
             band *= intensities[:, b, None]
         return value
 
+    def never_brighter_towards_grazing(self) -> BRDF:
+        """The same finish with the nearest falloff (least squares at the knots,
+        scipy's isotonic regression) that never rises as the light's cosine
+        falls, 1 at normal incidence: what a diffuse base gives under a coat
+        that lets less light in towards grazing, or bare. A fitted falloff that
+        rises towards grazing is, as often, the normals' tilt traded for it
+        (:mod:`colorps.falloff_trade`).
+
+        Examples
+        --------
+        >>> from colorps.brdf import BRDF
+        >>> fitted = BRDF(falloff=(1.2, 0.9, 0.9, 0.9, 0.95, 1.0, 1.0, 1.0))
+        >>> [round(g, 3) for g in fitted.never_brighter_towards_grazing().falloff]
+        [0.97, 0.97, 0.97, 0.97, 0.97, 1.0, 1.0, 1.0]
+        """
+        from scipy.optimize import isotonic_regression
+
+        falloff = isotonic_regression(np.asarray(self.falloff), increasing=True).x
+        return replace(self, falloff=tuple(falloff / falloff[-1]))
+
     def as_dict(self) -> dict:
         return dict(model="diffuse falloff x Oren-Nayar + GGX",
                     falloff_knots=list(DIFFUSE_KNOTS), falloff=list(self.falloff),

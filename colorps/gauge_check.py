@@ -35,7 +35,7 @@ from .brdf import BRDF
 from .camera import Camera
 from .errors import CameraWarning, EncodingWarning, GaugeError, GaugeWarning
 from .gauge import Gauge
-from .geometry import angular_error
+from .geometry import angular_error, at_nearest_normal
 from .lights import Lights
 from .noise import NoiseModel, estimate_noise, lit_measurements
 
@@ -433,8 +433,6 @@ def lens_bias(gauge: Gauge, focal_px: float, normals: np.ndarray) -> np.ndarray:
     image's centre): at each of ``normals`` (..., 3; NaN where not solved), the
     angle between the orthographic normal and the lens's at the gauge pixel of
     the nearest orthographic normal (on a LENS_PIXELS sample of the sphere)."""
-    from scipy.spatial import cKDTree
-
     ys, xs = np.nonzero(gauge.mask)
     pick = np.linspace(0, ys.size - 1, min(LENS_PIXELS, ys.size)).astype(int)
     ys, xs = ys[pick], xs[pick]
@@ -442,11 +440,7 @@ def lens_bias(gauge: Gauge, focal_px: float, normals: np.ndarray) -> np.ndarray:
     seen = (through != 0).any(axis=1)
     ys, xs, off = ys[seen], xs[seen], angular_error(through[seen], gauge.normals[ys[seen],
                                                                                  xs[seen]])
-    flat = np.asarray(normals, np.float64).reshape(-1, 3)
-    bias = np.full(flat.shape[0], np.nan)
-    known = np.isfinite(flat).all(axis=1)
-    bias[known] = off[cKDTree(gauge.normals[ys, xs]).query(flat[known])[1]]
-    return bias.reshape(np.shape(normals)[:-1])
+    return at_nearest_normal(gauge.normals[ys, xs], off, normals)
 
 
 def with_lens_bias(result, gauge: Gauge, record: dict):

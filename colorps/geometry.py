@@ -11,7 +11,8 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["angular_error", "circle_of_cone", "silhouette_cone", "sphere_normals"]
+__all__ = ["angular_error", "at_nearest_normal", "circle_of_cone", "silhouette_cone",
+           "sphere_normals"]
 
 #: Newton steps fitting a sphere's cone to its silhouette circle (converges in 3-4).
 CONE_NEWTON_STEPS = 8
@@ -93,6 +94,20 @@ def angular_error(a, b) -> np.ndarray:
     b = np.asarray(b, dtype=np.float64)
     sine = np.linalg.norm(np.cross(a, b), axis=-1)
     return np.degrees(np.arctan2(sine, (a * b).sum(axis=-1)))
+
+
+def at_nearest_normal(table_normals: np.ndarray, values: np.ndarray,
+                      normals: np.ndarray) -> np.ndarray:
+    """Each of ``normals`` (..., 3; NaN where unknown) given the value of the
+    nearest of ``table_normals`` (P, 3) in ``values`` (P,): a quantity measured
+    on a gauge's normals, looked up for a scene's (NaN where unknown)."""
+    from scipy.spatial import cKDTree
+
+    flat = np.asarray(normals, np.float64).reshape(-1, 3)
+    out = np.full(flat.shape[0], np.nan)
+    known = np.isfinite(flat).all(axis=1)
+    out[known] = np.asarray(values)[cKDTree(table_normals).query(flat[known])[1]]
+    return out.reshape(np.shape(normals)[:-1])
 
 
 def _pinhole_sphere_normals(x, y, cx, cy, radius, camera: Camera, shape):

@@ -29,7 +29,8 @@ import numpy as np
 from . import __version__
 from ._blas import one_blas_thread
 from ._pages import small_pages
-from .errors import InputError, InterreflectionWarning, LowSolvedWarning
+from .errors import InputError, LowSolvedWarning
+from .falloff_trade import with_falloff_trade
 from .figures import overview_step
 from .gauge import Gauge, find_sphere, rim_margin
 from .gauge_check import (
@@ -49,10 +50,9 @@ from .hygiene import check_contents, check_exposures, check_names, check_stack_e
 from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
 from .interreflection import (
-    MIN_LIT_CELLS,
     PASSES_AGAIN,
+    left_in,
     moved_by,
-    sees_itself,
     with_scale_uncertainty,
     without_interreflections,
 )
@@ -221,6 +221,7 @@ def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Option
         result, run, virtual = with_own_finish(  # (seen along the axis if along_rays)
             solved_from, stacks.light_set, run, mask=mask, radius=inputs.virtual_radius,
             camera=None if along_rays else inputs.camera, progress=progress)
+    lights = stacks.light_set  # (the gauge's, measured, when the finish route is taken)
     if inputs.lights is None and run.options.finish_check and \
             finish_may_differ(result.stats.model_scale, checked):
         if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
@@ -237,6 +238,7 @@ def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Option
         result = with_scale_uncertainty(result, moved)
     del solved_from, corrected, moved
     result = with_lens_bias(result, gauge, checked)  # a lens read orthographically
+    result = with_falloff_trade(result, virtual, lights, inputs.virtual_radius, checked)
     return result, preview, run, gauge, virtual, checked, bounced
 
 
@@ -493,7 +495,7 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
     if not run.options.interreflections:
         return result, None, dict(skipped="--no-interreflections"), None
     if plan.rows is not None:
-        return result, None, _left_in(
+        return result, None, left_in(
             result, "a tiled run", " (untiled, without --tile and with enough "
             "--memory-limit, that light is taken out)"), None
 
@@ -519,17 +521,6 @@ def _solve_with(gauge_stack, gauge: Gauge, run: Resolved, mask, progress: bool,
     return lambda stack, pixels, scale: reconstruct(
         stack, gauge_stack, gauge, run, model_scale=scale, progress=progress,
         mask=mask if pixels is None else pixels, tables=tables)
-
-
-def _left_in(result, why: str, advice: str) -> dict:
-    """report.json's record of a run that cannot take the bounced light out
-    (``why``), with a warning (and ``advice``) when the solved object sees itself."""
-    share = sees_itself(result.normals, result.solved)
-    if share >= MIN_LIT_CELLS:
-        warnings.warn(f"{share:.0%} of the object sees itself, but {why} leaves the light it "
-                      "bounces onto itself in: normals in its folds may lean towards the walls "
-                      f"that light them{advice}", InterreflectionWarning, stacklevel=3)
-    return dict(skipped=why, sees_itself=share)
 
 
 def _with_gauge_lights(result, stacks: _Stacks, gauge_stack, gauge: Gauge, run: Resolved,

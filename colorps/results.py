@@ -258,11 +258,13 @@ class Reconstruction:
         """(H, W) uint8 number of lights dropped from each pixel's match."""
         return light_masks.count(self.dropped_lights).astype(np.uint8)
 
-    def with_uncertainty_added(self, radius) -> Reconstruction:
+    def with_uncertainty_added(self, radius, *, bias: bool = False) -> Reconstruction:
         """A copy whose 68 % radii (degrees) have ``radius`` (degrees, a scalar or
         an (H, W) map: an error this result's own fit cannot see) added in
-        quadrature, their median and p95 in ``stats`` again."""
-        widened = np.sqrt(self.uncertainty ** 2 + np.square(radius)).astype(np.float32)
+        quadrature (a scatter), or added to them (``bias``: an offset of up to
+        ``radius`` in one direction), their median and p95 in ``stats`` again."""
+        widened = (self.uncertainty + radius if bias else
+                   np.sqrt(self.uncertainty ** 2 + np.square(radius))).astype(np.float32)
         inside = widened[self.solved & np.isfinite(widened)]
         stats = dataclasses.replace(self.stats, uncertainty_median=_median(inside),
                                     uncertainty_p95=_percentile(inside, 95))
