@@ -291,12 +291,12 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         if probe is None:  # tried first on a sample of the pixels it reaches
             probe = _probe(reached, grid.step, first.solved)
             before = first if solved_as_read else solve(scene, probe, first.stats.model_scale)
-            tries = _downhill(_without_at(scene, grid, scale, result.albedo, probe),
-                              lambda stack, at=probe: solve(stack, at, first.stats.model_scale),
-                              lambda tried, at=probe: _residual(tried, at))
-            factor = min(tries, key=lambda f: _residual(tries[f], probe))
-            record["residuals"] = [_residual(before, probe), _residual(tries[factor], probe)]
-            if not _explains_better(tries[factor], before, probe):  # (a glossy finish's
+            factor, tried = _downhill(
+                _without_at(scene, grid, scale, result.albedo, probe),
+                lambda stack, at=probe: solve(stack, at, first.stats.model_scale),
+                lambda solved, at=probe: _residual(solved, at))
+            record["residuals"] = [_residual(before, probe), _residual(tried, probe)]
+            if not _explains_better(tried, before, probe):  # (a glossy finish's
                 record["stopped"] = "the gauge explains it no better"  # highlights)
                 break
         scale *= factor
@@ -363,26 +363,26 @@ def _without_at(scene: np.ndarray, grid: BounceGrid, scale: float, albedo: np.nd
     return without
 
 
-def _downhill(without: Callable, solve: Callable, residual: Callable) -> dict:
-    """The probe's solves at :data:`SCALE_FACTORS` (``solve(without(factor))``),
-    from 1 downhill in ``residual`` to a least one: each factor's neighbours are
-    tried, and the walk moves to the lower while it is lower than where it is
-    (the residual falls, then rises, about the scale that fits: 3 or 4 solves of
-    the 5). Returns {factor: solve} of the factors tried."""
-    tries = {}
+def _downhill(without: Callable, solve: Callable, residual: Callable) -> tuple[float, object]:
+    """The probe solved at the least-residual of :data:`SCALE_FACTORS`
+    (``solve(without(factor))``), found from 1 downhill in ``residual``: each
+    factor's neighbours are tried, and the walk moves to the lower while it is
+    lower than where it is (the residual falls, then rises, about the scale that
+    fits: 3 or 4 solves of the 5). Returns that factor and its solve."""
+    tries, costs = {}, {}
 
     def cost(k: int) -> float:
-        factor = SCALE_FACTORS[k]
-        if factor not in tries:
-            tries[factor] = solve(without(factor))
-        return residual(tries[factor])
+        if k not in costs:
+            tries[k] = solve(without(SCALE_FACTORS[k]))
+            costs[k] = residual(tries[k])
+        return costs[k]
 
     here = SCALE_FACTORS.index(1.0)
     while True:
         nearest = min((k for k in (here - 1, here + 1) if 0 <= k < len(SCALE_FACTORS)),
                       key=cost)
         if not cost(nearest) < cost(here):
-            return tries
+            return SCALE_FACTORS[here], tries[here]
         here = nearest
 
 
