@@ -210,6 +210,25 @@ def test_the_scales_are_walked_downhill_to_the_least(least):
     assert len(solved) == len(set(solved)) == (3 if least == 1.0 else 4)
 
 
+def test_bounced_light_that_would_empty_a_pixel_is_left_in():
+    """A pixel whose bounced light, as estimated, takes out every light but
+    fewer than MIN_LIGHTS keeps its measurements (it is solved as read, not
+    refused as too dark); the others lose it, at least down to 0."""
+    from colorps._config import MIN_LIGHTS
+    from colorps.interreflection import _taken_out
+
+    seen = np.full((6, 2, 1), 0.2)
+    light = np.stack([np.full((6, 1), 0.05), np.r_[np.full(MIN_LIGHTS - 1, 0.1),
+                                                   np.full(7 - MIN_LIGHTS, 0.5)][:, None]],
+                     axis=1)
+    out = _taken_out(seen, light.copy())
+    assert np.allclose(out[:, 0], 0.15)
+    assert np.allclose(out[:, 1], 0.2)
+    light[MIN_LIGHTS - 1, 1] = 0.1  # MIN_LIGHTS lights keep some: taken out
+    out = _taken_out(seen, light.copy())
+    assert (out[:, 1] == np.maximum(0.2 - light[:, 1], 0.0)).all()
+
+
 @pytest.fixture(scope="module")
 def rough_bounced_folds():
     """The folds with a rough (Oren-Nayar 0.3) finish on the grey Lambertian
