@@ -129,7 +129,8 @@ def albedo(values, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albe
     plus the sub-pixel ``offset`` (columns, rows). With every measurement
     usable the albedo ratio is |S_k| / |G_k| (method eq. 6); otherwise the
     least-squares scale over the usable ones, NaN when those carry under
-    ``min_energy`` of |G_k|^2. Times ``gauge_albedo[k]``.
+    ``min_energy`` of |G_k|^2, and NaN where the gauge is dark under every light
+    (a fit gone past its rim). Times ``gauge_albedo[k]``.
 
     Parameters
     ----------
@@ -179,7 +180,9 @@ def albedo(values, ys, xs, gauge, rows, offset, excluded, clip_level, gauge_albe
                 scene_energy += s * s
                 used_energy += g * g
                 product += s * g
-            if all_usable:
+            if not gauge_energy > 0.0:  # a fit past the gauge's rim: no gauge there
+                ratio = np.nan
+            elif all_usable:
                 ratio = np.sqrt(scene_energy) / np.sqrt(gauge_energy)
             elif used_energy >= min_energy * gauge_energy:
                 ratio = product / used_energy
