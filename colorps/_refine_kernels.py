@@ -11,7 +11,8 @@ and the offset minimising the weighted misfit
     E(u, v) = sum_ki w_ki (S_ki - a_k G_ki(u, v))^2,  a_k the best scale of band k
 
 is found by Gauss-Newton (variable projection: a_k in closed form at every
-step), inside the neighbourhood (|u|, |v| <= 1). A pixel matched to a gauge
+step, and projected out of the Jacobian, a_k (G_u - (<G, G_u> / <G, G>) G)),
+inside the neighbourhood (|u|, |v| <= 1). A pixel matched to a gauge
 pixel on the usable gauge's outermost ring (no full 3 x 3 neighbourhood: no
 model) starts from the model of a neighbour that has one, at its own place. The
 gauge normals get the same quadratic model and are evaluated at the optimum;

@@ -14,7 +14,8 @@ as normals and a mask, not only for spheres.
 
 The **uncertainty** is the radius (degrees) within which the true normal lies
 with 68 % probability under the noise model: the offset's covariance
-(J^T W J)^-1 from the Jacobian of the fit, carried to the normal through the
+(J^T W J)^-1 from the Jacobian of the fit (each band's scale projected out of
+it, so profiled out of the covariance), carried to the normal through the
 normal's derivatives, scaled by the capture's model scale, taken as an
 isotropic 2-D Gaussian (68 % radius = 1.515 sigma per axis). Beside it, the
 **measured uncertainty** is the same radius from the sandwich covariance
