@@ -41,7 +41,13 @@ from .options import MIN_IMAGES, Options, dark_threshold
 from .reasons import Reason
 from .refine import Matched, Refinement, misfit_radius, quadratic_models, refine_normals
 from .resolve import Resolved, resolve
-from .results import Reconstruction, Timings, low_solved_message, run_statistics
+from .results import (
+    MAX_UNCERTAINTY,
+    Reconstruction,
+    Timings,
+    low_solved_message,
+    run_statistics,
+)
 from .shadows import INLIER_Z, fixes_normal
 from .signatures import SignatureSet, compute_signatures
 from .spikes import replace_spikes
@@ -167,12 +173,14 @@ def reconstruct(scene, gauge_stack, gauge: Gauge, options: Options | Resolved | 
             # normal's directions, whichever is larger, grown by how much worse than
             # the noise the match explains the pixel (the reduced chi-square's root,
             # its residual): a pixel the gauge explains poorly is less certain. Or,
-            # where larger, the misfit's own radius (refine.misfit_radius).
+            # where larger, the misfit's own radius (refine.misfit_radius). At most
+            # MAX_UNCERTAINTY.
             misfit = np.maximum(1.0, np.nan_to_num(matches.quality[solved], nan=1.0))
             normals[solved] = refined.normals
-            uncertainty[solved] = np.fmax(
+            uncertainty[solved] = np.minimum(np.fmax(
                 np.fmax(refined.uncertainty, refined.measured_uncertainty) * misfit,
-                _misfit_radius(refined, matches, solved, setup.capture.images))
+                _misfit_radius(refined, matches, solved, setup.capture.images)),
+                MAX_UNCERTAINTY)
             offset = refined.offset
             del refined  # its other per-pixel arrays are not needed past here
             release_freed_memory()

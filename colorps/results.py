@@ -25,6 +25,7 @@ from .reasons import Reason, reason_counts
 
 __all__ = [
     "LOW_SOLVED_FRACTION",
+    "MAX_UNCERTAINTY",
     "Reconstruction",
     "ReconstructionStats",
     "RunClock",
@@ -39,6 +40,10 @@ __all__ = [
 
 #: Below this fraction of the masked pixels solved, a LowSolvedWarning is raised.
 LOW_SOLVED_FRACTION = 0.5
+#: The largest 68 % radius (degrees) a normal is given: no direction is further
+#: off. A fit gone past the gauge's rim, where the gauge's signatures no longer
+#: change, had radii of 1e11 degrees.
+MAX_UNCERTAINTY = 180.0
 
 
 @dataclass(frozen=True)
@@ -262,9 +267,11 @@ class Reconstruction:
         """A copy whose 68 % radii (degrees) have ``radius`` (degrees, a scalar or
         an (H, W) map: an error this result's own fit cannot see) added in
         quadrature (a scatter), or added to them (``bias``: an offset of up to
-        ``radius`` in one direction), their median and p95 in ``stats`` again."""
+        ``radius`` in one direction), at most MAX_UNCERTAINTY, their median and
+        p95 in ``stats`` again."""
         widened = (self.uncertainty + radius if bias else
                    np.sqrt(self.uncertainty ** 2 + np.square(radius))).astype(np.float32)
+        np.minimum(widened, MAX_UNCERTAINTY, out=widened)
         inside = widened[self.solved & np.isfinite(widened)]
         stats = dataclasses.replace(self.stats, uncertainty_median=_median(inside),
                                     uncertainty_p95=_percentile(inside, 95))

@@ -31,6 +31,20 @@ def test_noiseless_median_error_five_times_below_the_table(radius, brdf):
     np.testing.assert_allclose(np.linalg.norm(fine.normals[ok], axis=-1), 1, atol=1e-5)
 
 
+def test_no_radius_beyond_half_a_turn():
+    """A radius widened past 180 degrees (a fit gone past the gauge's rim had
+    1e11) is 180: no direction is further off."""
+    from colorps.results import MAX_UNCERTAINTY
+
+    scene, stack, gauge_stack, gauge = capture(40, noise=0.01, size=80)
+    result = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
+    widened = result.with_uncertainty_added(1e12)
+    ok = result.solved & np.isfinite(result.uncertainty)
+    assert MAX_UNCERTAINTY == 180.0 and (widened.uncertainty[ok] == 180.0).all()
+    assert widened.stats.uncertainty_median == 180.0
+    assert np.nanmax(result.uncertainty) <= 180.0
+
+
 @pytest.mark.parametrize("noise", [0.002, 0.01])
 def test_noisy_never_worse_and_uncertainty_calibrated(noise):
     scene, stack, gauge_stack, gauge = capture(100, noise=noise, size=200)
