@@ -162,11 +162,13 @@ def _band_scale(coef, y, x, obs, weights, robust, robust_on, k, n_lights, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u, v, reach):
+def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u, v, reach,
+                  models):
     """STEPS Gauss-Newton steps from (u, v) inside the neighbourhood; returns the
     offset and the normal equations' matrix (h00, h01, h11) at it. Each
     measurement's weight is times its robust factor, which each step sets to
-    min(1, limit / |residual in noise units|) for the next (Huber)."""
+    min(1, limit / |residual in noise units|) for the next (Huber). ``models``
+    (3, M) is scratch: a band's model values and slopes, evaluated once a step."""
     h00 = h01 = h11 = 0.0
     for _ in range(STEPS):
         h00 = 0.0
@@ -175,19 +177,33 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
         g0 = 0.0
         g1 = 0.0
         for k in range(n_bands):
-            a, slope_u, slope_v = _band_scale(coef, y, x, obs, weights, robust, True, k,
-                                              n_lights, u, v)
-            if a == 0.0:
+            # a_k and its slopes (_band_scale), the model kept for the second pass.
+            sg = gg = ggu = ggv = 0.0
+            for i in range(n_lights):
+                if weights[k, i] * robust[k, i] > 0.0:
+                    g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
+                    models[0, i] = g
+                    models[1, i] = gu
+                    models[2, i] = gv
+                    wt = weights[k, i] * robust[k, i]
+                    sg += wt * obs[k, i] * g
+                    gg += wt * g * g
+                    ggu += wt * g * gu
+                    ggv += wt * g * gv
+            if not gg > 0.0 or sg == 0.0:
                 continue
+            a = sg / gg
+            slope_u = ggu / gg
+            slope_v = ggv / gg
             for i in range(n_lights):
                 wt = weights[k, i] * robust[k, i]
                 if wt > 0.0:
-                    g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
+                    g = models[0, i]
                     r = obs[k, i] - a * g
                     z = abs(r) * np.sqrt(weights[k, i])
                     robust[k, i] = min(1.0, limit / z) if z > 0.0 else 1.0
-                    ju = a * (gu - slope_u * g)
-                    jv = a * (gv - slope_v * g)
+                    ju = a * (models[1, i] - slope_u * g)
+                    jv = a * (models[2, i] - slope_v * g)
                     h00 += wt * ju * ju
                     h01 += wt * ju * jv
                     h11 += wt * jv * jv
@@ -325,8 +341,8 @@ def _weights(scene_ov, gauge_ov, py, px, y, x, bands, dropped, noise, levels, ta
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, out_y, out_x,
-                  out_u, out_v, out_normal, out_cov, out_fit, out_ok):
+def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, models, limit, qy, qx, out_y,
+                  out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok):
     n_bands, n_lights = obs.shape
     robust[:] = 1.0
     y, x = qy[p], qx[p]
@@ -347,14 +363,14 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, o
     h00 = h01 = h11 = 0.0
     for move in range(MAX_MOVES + 1):
         u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, robust, limit,
-                                            n_bands, n_lights, u, v, 1.0)
+                                            n_bands, n_lights, u, v, 1.0, models)
         step_x = 1 if u >= 1.0 else -1 if u <= -1.0 else 0
         step_y = 1 if v >= 1.0 else -1 if v <= -1.0 else 0
         if (step_x == 0 and step_y == 0) or move == MAX_MOVES:
             break
         if window[y + step_y, x + step_x] == 0:
             u, v, h00, h01, h11 = _gauss_newton(coef, y, x, obs, weights, robust, limit,
-                                                n_bands, n_lights, u, v, EXTRAPOLATE)
+                                                n_bands, n_lights, u, v, EXTRAPOLATE, models)
             break
         y += step_y
         x += step_x
@@ -418,11 +434,12 @@ def refine(gauge, pixels, noise_tables, limit, cut, out):
         obs = np.empty((n_bands, n_lights))
         weights = np.empty((n_bands, n_lights))
         robust = np.empty((n_bands, n_lights))
+        models = np.empty((3, n_lights))
         for p in range(chunk * PIXEL_CHUNK, min((chunk + 1) * PIXEL_CHUNK, n)):
             _weights(scene_ov, gauge_ov, py[p], px[p], qy[p], qx[p], bands[p], dropped[p],
                      noise, levels, table, obs, weights)
-            _refine_pixel(p, coef, ncoef, window, obs, weights, robust, limit, qy, qx, out_y,
-                          out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok)
+            _refine_pixel(p, coef, ncoef, window, obs, weights, robust, models, limit, qy, qx,
+                          out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok)
             if out_ok[p]:
                 out_chi2[p] = _inliers(coef, out_y[p], out_x[p], obs, weights, robust, limit,
                                        cut, n_bands, n_lights, out_u[p], out_v[p], outliers[p])
