@@ -132,11 +132,13 @@ def _eval(coef, y, x, j, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _band_scale(coef, y, x, obs, weights, robust, robust_on, k, n_lights, u, v):
+def _band_scale(coef, y, x, obs, weights, robust, robust_on, k, n_lights, u, v, models):
     """The best scale a_k of band k's model at (u, v) (weights times the robust
     factors when ``robust_on``), and the model's slopes along itself, <G, G_u> /
     <G, G> and <G, G_v> / <G, G>, under the same weights; (0, 0, 0) when no
-    measurement of the band is used.
+    measurement of the band is used. ``models`` (3, M) receives the model's
+    value and derivatives (G, G_u, G_v) at each light the band uses, for the
+    caller's pass over the residuals.
 
     The slopes project a_k out of the Jacobian (variable projection): a move
     of (u, v) that only brightens the band is taken up by a_k, so only G_u -
@@ -149,9 +151,12 @@ def _band_scale(coef, y, x, obs, weights, robust, robust_on, k, n_lights, u, v):
     ggu = 0.0
     ggv = 0.0
     for i in range(n_lights):
-        wt = weights[k, i] * (robust[k, i] if robust_on else 1.0)
-        if wt > 0.0:
+        if weights[k, i] > 0.0:
             g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
+            models[0, i] = g
+            models[1, i] = gu
+            models[2, i] = gv
+            wt = weights[k, i] * (robust[k, i] if robust_on else 1.0)
             sg += wt * obs[k, i] * g
             gg += wt * g * g
             ggu += wt * g * gu
@@ -168,7 +173,7 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
     offset and the normal equations' matrix (h00, h01, h11) at it. Each
     measurement's weight is times its robust factor, which each step sets to
     min(1, limit / |residual in noise units|) for the next (Huber). ``models``
-    (3, M) is scratch: a band's model values and slopes, evaluated once a step."""
+    (3, M) is scratch (:func:`_band_scale`)."""
     h00 = h01 = h11 = 0.0
     for _ in range(STEPS):
         h00 = 0.0
@@ -177,24 +182,10 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
         g0 = 0.0
         g1 = 0.0
         for k in range(n_bands):
-            # a_k and its slopes (_band_scale), the model kept for the second pass.
-            sg = gg = ggu = ggv = 0.0
-            for i in range(n_lights):
-                if weights[k, i] * robust[k, i] > 0.0:
-                    g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
-                    models[0, i] = g
-                    models[1, i] = gu
-                    models[2, i] = gv
-                    wt = weights[k, i] * robust[k, i]
-                    sg += wt * obs[k, i] * g
-                    gg += wt * g * g
-                    ggu += wt * g * gu
-                    ggv += wt * g * gv
-            if not gg > 0.0 or sg == 0.0:
+            a, slope_u, slope_v = _band_scale(coef, y, x, obs, weights, robust, True, k,
+                                              n_lights, u, v, models)
+            if a == 0.0:
                 continue
-            a = sg / gg
-            slope_u = ggu / gg
-            slope_v = ggv / gg
             for i in range(n_lights):
                 wt = weights[k, i] * robust[k, i]
                 if wt > 0.0:
@@ -221,7 +212,7 @@ def _gauss_newton(coef, y, x, obs, weights, robust, limit, n_bands, n_lights, u,
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v):
+def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v, models):
     """The measured residuals' spread along the Jacobian at (u, v), the middle
     of the sandwich covariance: sum (w r)^2 J J^T (m00, m01, m11) over the
     measurements the fit used, at their noise weights w (not down-weighted:
@@ -232,18 +223,18 @@ def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v):
     scales = 0
     for k in range(n_bands):
         a, slope_u, slope_v = _band_scale(coef, y, x, obs, weights, robust, False, k,
-                                          n_lights, u, v)
+                                          n_lights, u, v, models)
         if a == 0.0:
             continue
         scales += 1
         for i in range(n_lights):
             wt = weights[k, i]
             if wt > 0.0:
-                g, gu, gv = _eval(coef, y, x, k * n_lights + i, u, v)
+                g = models[0, i]
                 r = obs[k, i] - a * g
                 spread = (wt * r) ** 2
-                ju = a * (gu - slope_u * g)
-                jv = a * (gv - slope_v * g)
+                ju = a * (models[1, i] - slope_u * g)
+                jv = a * (models[2, i] - slope_v * g)
                 m00 += spread * ju * ju
                 m01 += spread * ju * jv
                 m11 += spread * jv * jv
@@ -256,7 +247,8 @@ def _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _inliers(coef, y, x, obs, weights, robust, limit, cut, n_bands, n_lights, u, v, outliers):
+def _inliers(coef, y, x, obs, weights, robust, limit, cut, n_bands, n_lights, u, v, outliers,
+             models):
     """The fit's chi-square per degree of freedom over its inliers: the lights
     none of whose measurements the robust fit left more than ``cut`` noise
     units off (robust factor limit / residual below limit / cut); the others
@@ -270,14 +262,13 @@ def _inliers(coef, y, x, obs, weights, robust, limit, cut, n_bands, n_lights, u,
     scales = 0
     for k in range(n_bands):
         a, _slope_u, _slope_v = _band_scale(coef, y, x, obs, weights, robust, True, k,
-                                            n_lights, u, v)
+                                            n_lights, u, v, models)
         if a == 0.0:
             continue
         scales += 1
         for i in range(n_lights):
             if weights[k, i] > 0.0 and not _has(outliers, i):
-                g, _gu, _gv = _eval(coef, y, x, k * n_lights + i, u, v)
-                r = obs[k, i] - a * g
+                r = obs[k, i] - a * models[0, i]
                 chi2 += weights[k, i] * r * r
                 count += 1
     free = count - scales - 2
@@ -403,7 +394,8 @@ def _refine_pixel(p, coef, ncoef, window, obs, weights, robust, models, limit, q
     out_cov[p] = c00 * tu + 2.0 * c01 * tuv + c11 * tv
     # The sandwich C M C, M the measured residuals' spread: the covariance the
     # residuals show, whatever their cause.
-    m00, m01, m11, used = _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v)
+    m00, m01, m11, used = _meat(coef, y, x, obs, weights, robust, n_bands, n_lights, u, v,
+                                models)
     if used:
         s00 = c00 * c00 * m00 + 2.0 * c00 * c01 * m01 + c01 * c01 * m11
         s01 = c00 * c01 * m00 + (c00 * c11 + c01 * c01) * m01 + c01 * c11 * m11
@@ -442,4 +434,5 @@ def refine(gauge, pixels, noise_tables, limit, cut, out):
                           out_y, out_x, out_u, out_v, out_normal, out_cov, out_fit, out_ok)
             if out_ok[p]:
                 out_chi2[p] = _inliers(coef, out_y[p], out_x[p], obs, weights, robust, limit,
-                                       cut, n_bands, n_lights, out_u[p], out_v[p], outliers[p])
+                                       cut, n_bands, n_lights, out_u[p], out_v[p], outliers[p],
+                                       models)
