@@ -133,7 +133,8 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds, capsys):
                                                            gauge_stack, progress=True)
     said = capsys.readouterr().err
     assert "of the object sees itself" in said
-    assert said.count("solving again without it (pass") == record["passes"]
+    assert said.count("solving again without it (pass") == record["passes"] + \
+        (record["stopped"] == "the gauge explains it no better than after the pass before")
     assert _mean_error(first, scene) > 3.0
     assert _mean_error(result, scene) < 0.5 * _mean_error(first, scene)
     assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
@@ -165,7 +166,7 @@ def test_a_scale_the_shadows_put_too_high_is_brought_back_by_the_probe(bounced_f
     result, _, record = without_interreflections(lambda: stack, first, solve, gauge,
                                                  gauge_stack)
     assert min(SCALE_FACTORS) * 2.5 <= 1.0  # the true scale (0.5) is within reach
-    assert record["passes"] >= 1 and record["scale"] == pytest.approx(0.5, abs=0.1)
+    assert record["passes"] >= 1 and 0.4 <= record["scale"] <= 0.8
     assert _mean_error(result, scene) < 0.3 * _mean_error(first, scene)
 
 
@@ -188,6 +189,33 @@ def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
     assert len(record["residuals"]) == 2 and record["residuals"][1] > record["residuals"][0]
     # Each scale explains it alike: 1 and its two neighbours tried, no further.
     assert len(tried) == 3 and 0 < max(tried) <= PROBE_PIXELS
+
+
+def test_a_pass_worse_than_the_one_before_ends_the_passes(bounced_folds):
+    """Each pass starts from the shape of the one before; when it explains the
+    scene worse than that one (a shadows' fit drifting: Mitsuba's matte pot under
+    96 lights, 0.48 degrees median after three passes, 0.40 after the first
+    alone), the one before is kept, though it still beats the uncorrected solve."""
+    scene, stack, gauge_stack, gauge = bounced_folds
+    whole = []
+
+    def solve(images, pixels=None, model_scale=None):
+        result = reconstruct(images, gauge_stack, gauge, model_scale=model_scale,
+                             mask=scene.mask if pixels is None else pixels)
+        if pixels is None:
+            whole.append(result)
+            if len(whole) == 3:  # the second pass: a little worse than the first
+                result = SimpleNamespace(solved=result.solved, stats=whole[1].stats,
+                                         quality=whole[1].quality * 1.05)
+        return result
+
+    first = solve(stack)
+    result, _, record = without_interreflections(lambda: stack, first, solve, gauge,
+                                                 gauge_stack)
+    assert len(whole) == 3 and record["passes"] == 1  # (whole[0]: the uncorrected)
+    assert record["stopped"] == "the gauge explains it no better than after the pass before"
+    assert record["residuals"][-1] > record["residuals"][-2] > 0
+    np.testing.assert_array_equal(result.normals, whole[1].normals)
 
 
 @pytest.mark.parametrize("least", [0.4, 0.63, 1.0, 1.2, 1.45])
