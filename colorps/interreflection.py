@@ -22,9 +22,9 @@ bounce, so one subtraction removes them all, up to the shape's errors.
 
 The albedo's absolute scale is the gauge's stated albedo, which users often
 leave at 1: the bounced light's scale is fitted instead (:func:`bounce_scale`),
-on the measurements each pass left out as cast shadows, where the scene shows
-the bounced light alone; without cast shadows it is not guessed, and the
-bounced light stays in. A pass is kept only when the gauge explains the scene
+on the measurements in attached shadow (the light is behind the surface, as the
+gauge at the same normal shows), where the scene shows the bounced light alone;
+without them it is not guessed, and the bounced light stays in. A pass is kept only when the gauge explains the scene
 without it better (:func:`_explains_better`): a glossy finish's highlights are
 not light a matte surface sends its neighbours.
 """
@@ -37,11 +37,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from colorps import light_masks
 from colorps._config import MIN_LIGHTS
 from colorps.bounce import BounceGrid, bounced_light, cell_grid, gather, light_at
 from colorps.errors import InterreflectionWarning
-from colorps.gauge import Gauge, parse_albedo
+from colorps.gauge import Gauge
 from colorps.geometry import angular_error
 from colorps.integrate import integrate
 
@@ -83,35 +82,39 @@ SIGN_TEST_SDS = 3.0
 #: the whole scene is solved again: 20,000 take a third of a 1 MP solve's time,
 #: and their median residual is within 1 % of the whole's.
 PROBE_PIXELS = 20_000
-#: The scale the shadows give is tried on the probe times these, from 1 downhill
-#: in the probe's residual (:func:`_downhill`), and the one the gauge explains
-#: best kept for every pass: the shadows' fit is biased
-#: low (only the measurements under :data:`SHADOW_BELOW` count), and too little
-#: bounced light taken out leaves much of its error (deep folds: a scale of 0.89
-#: for 1 gave 0.85 degrees; 1.2 times it, chosen so, 0.30). It is biased high
-#: where the shadows' edges are partly lit (a lens's blur, a light's size): a pot
-#: path-traced by Mitsuba 3, whose pixel filter blurs every edge, fitted 2.5 for
-#: about 1, its first pass explained the probe worse and the bounced light stayed
-#: in (1.96 degrees median); 0.4 times it, chosen so, 0.41.
-SCALE_FACTORS = (0.4, 0.63, 1.0, 1.2, 1.45)
-#: Relative uncertainty of the scale kept: half the step between
+#: The scale the attached shadows give (:func:`bounce_scale`) is tried on the
+#: probe times SCALE_STEP to the powers -2 to 2, from 1 downhill in the probe's
+#: residual (:func:`_downhill`), and the one the gauge explains best kept for
+#: every pass. The gathered light is a little short in the deepest shadows and
+#: in narrow grooves (a grid of :data:`BOUNCE_CELLS` cells), so the fit runs
+#: high by up to a third (Mitsuba's matte pot under 96 lights: 1.35 on the first
+#: shape for a 1.15 that takes the bounced light out best): chosen so, 0.8 times
+#: it, 0.39 / 0.21 degrees mean / median; 1 times it, 0.43 / 0.29. A coarser
+#: step (0.63, 1, 1.2) chose 1 there.
+SCALE_STEP = 1.25
+SCALE_FACTORS = tuple(SCALE_STEP ** k for k in range(-2, 3))
+#: Relative uncertainty of the scale kept: about half the step between
 #: :data:`SCALE_FACTORS` about 1. A normal the bounced light moved by an angle is
 #: uncertain by this share of it, added to its 68 % radius (deep folds: 42 % of
 #: the errors within the radius without it, 80 % with it; their ranking,
 #: Spearman 0.50 -> 0.62).
 SCALE_UNCERTAINTY = 0.1
-#: Shadowed measurements (with some bounced light) needed to fit the scale;
+#: Measurements in attached shadow (with some bounced light) needed to fit the scale;
 #: fewer, and the bounced light is left in (not guessed from the stated albedo).
 MIN_SHADOWED = 200
-#: A left-out measurement counts as shadowed (only bounced light reaching it) when
-#: below this share of what its light would give the pixel directly: a lit
-#: measurement the match left out (a coat's highlight missing, another finish's
-#: falloff) is near that or above. Below the pixel's median measurement instead,
-#: a glossy scene (a GGX coat of F0 0.5) without bounced light, whose lit
-#: measurements are far below its highlights, fitted a scale of 0.45 and kept
-#: its passes with --lights (1.47 -> 3.71 degrees); lower shares leave out more
-#: of the shadows bounced light fills most (0.25: a scale of 0.75 for 1).
-SHADOW_BELOW = 0.75
+#: A light leaves a gauge pixel dark (its attached shadow) when it gives it
+#: under this share of what it gives the gauge's brightest pixel: above the
+#: noise of a dark gauge, below what a light grazing it gives.
+SHADOW_LEVEL = 0.02
+#: ... and a scene's measurement counts as in attached shadow when every gauge
+#: pixel within this angle of its normal is dark: a normal a little off (the
+#: bounced light tilts a fold's by degrees) or a light a little nearer than
+#: far away must not bring a lit measurement in. Wider is as safe but fits
+#: higher, from the deepest shadows, where the grid's gathering falls shortest
+#: (Mitsuba's matte pot: 1.35 at 0 degrees, 1.38 at 2, 1.48 at 5, 1.80 at 10).
+SHADOW_MARGIN_DEG = 2.0
+#: Solved pixels (a fixed draw) the scale is fitted on.
+SCALE_PIXELS = 100_000
 
 
 def bounce_grid(scene: np.ndarray, normals: np.ndarray, solved: np.ndarray,
@@ -146,41 +149,54 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result, gauge: Gauge,
     """The factor ``grid``'s bounced light is off by: the albedo's unknown absolute scale.
 
     Fitted by least squares, ``scene = scale * bounced``, on the measurements
-    ``result`` (the solve ``grid`` was made from) left out of its match that
-    are below :data:`SHADOW_BELOW` of what the light would give the pixel
-    (:func:`_direct`: the gauge's pixel of the same normal, times the pixel's
-    albedo): cast shadows, which the bounced light alone reaches (the
-    highlights and misfits it also leaves out are not so dark). Capped where
-    the median albedo would reflect all the light it gets (a few pixels'
-    albedo, from few lights, can be far off). None when fewer than
+    in attached shadow: those whose light leaves the gauge dark at the pixel's
+    normal (``result``'s, the solve ``grid`` was made from) and within
+    :data:`SHADOW_MARGIN_DEG` of it (:func:`_attached_shadows`), which only
+    bounced light reaches. Cast shadows are not used: their partly lit edges (a
+    lens's blur, a light's size, a renderer's pixel filter) bias the fit high
+    (Mitsuba's matte pot under 96 lights fitted 2.3 where the bounced light it
+    rendered gives 1.3; on attached shadows 1.38, and 1.38 from that light).
+    Fitted on up to :data:`SCALE_PIXELS` of the solved pixels (a fixed draw);
+    capped where the median albedo would reflect all the light it gets (a few
+    pixels' albedo, from few lights, can be far off). None when fewer than
     :data:`MIN_SHADOWED` such measurements hold bounced light.
     """
-    m = scene.shape[0]
-    ys, xs = np.nonzero(result.solved & ~light_masks.is_empty(result.dropped_lights))
-    seen = scene[:, ys, xs]  # (m, n, c)
-    direct = _direct(result, gauge, gauge_stack, ys, xs).sum(axis=2)
-    shadowed = light_masks.to_bool(result.dropped_lights[ys, xs], m).T & \
-        (seen.sum(axis=2) < SHADOW_BELOW * direct)
+    ys, xs = np.nonzero(result.solved)
+    if ys.size > SCALE_PIXELS:
+        keep = np.sort(np.random.default_rng(0).choice(ys.size, SCALE_PIXELS, replace=False))
+        ys, xs = ys[keep], xs[keep]
+    shadowed = _attached_shadows(gauge, gauge_stack, result.normals[ys, xs])  # (m, n)
     gathered = light_at(grid, result.albedo, ys, xs)[shadowed]
     if (gathered > 0).sum() < MIN_SHADOWED:
         return None
-    scale = float((seen[shadowed] * gathered).sum() / (gathered * gathered).sum())
+    seen = scene[:, ys, xs][shadowed]
+    scale = float((seen * gathered).sum() / (gathered * gathered).sum())
     typical = float(np.nanmedian(result.albedo[result.solved])) if result.solved.any() else 0.0
     return float(np.clip(scale, 0.0, 1.0 / typical if typical > 0 else np.inf))
 
 
-def _direct(result, gauge: Gauge, gauge_stack: np.ndarray, ys: np.ndarray, xs: np.ndarray
-            ) -> np.ndarray:
-    """What each light gives pixels (``ys``, ``xs``) of ``result`` directly, (m, n, c):
-    the gauge's measurements at its pixel of the nearest normal, times the
-    pixel's albedo over the gauge's."""
+def _attached_shadows(gauge: Gauge, gauge_stack: np.ndarray, normals: np.ndarray
+                      ) -> np.ndarray:
+    """(m, n) bool: whether each light leaves the gauge dark (under
+    :data:`SHADOW_LEVEL` of its brightest) at each of the (n, 3) ``normals``
+    and at every gauge pixel within :data:`SHADOW_MARGIN_DEG` of it."""
+    from scipy import ndimage
     from scipy.spatial import cKDTree
 
     inside = gauge.mask & np.isfinite(gauge.normals).all(axis=-1)
-    nearest = cKDTree(gauge.normals[inside]).query(result.normals[ys, xs])[1]
-    bands = gauge_stack.shape[3]
-    relative = np.nan_to_num(result.albedo[ys, xs]) / parse_albedo(gauge.albedo, bands)
-    return gauge_stack[:, inside][:, nearest] * relative[None]
+    gy, gx = np.nonzero(inside)
+    nearest = cKDTree(gauge.normals[inside]).query(np.nan_to_num(normals))[1]
+    radius = int(np.ceil(gauge.sphere[2] * np.sin(np.radians(SHADOW_MARGIN_DEG)))) \
+        if gauge.sphere is not None else 1
+    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    disk = dy * dy + dx * dx <= radius * radius
+    dark = np.empty((gauge_stack.shape[0], normals.shape[0]), dtype=bool)
+    for light, image in enumerate(gauge_stack):
+        value = np.nan_to_num(np.asarray(image, dtype=np.float32)).sum(axis=-1)
+        brightest = float(value[inside].max()) if gy.size else 0.0
+        lit = ndimage.binary_dilation((value > SHADOW_LEVEL * brightest) & inside, disk)
+        dark[light] = ~lit[gy[nearest], gx[nearest]]
+    return dark & np.isfinite(normals).all(axis=-1)[None]
 
 
 def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_CELLS
@@ -228,7 +244,7 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
     gauge : Gauge
     gauge_stack : (m, Hg, Wg, c) ndarray
         The gauge ``first`` was solved with and its images (what each light
-        gives each normal: :func:`bounce_scale`'s shadows).
+        gives each normal: :func:`bounce_scale`'s attached shadows).
     passes : int, optional
         Solves without the bounced light, each from the shape of the one before.
     cells : int, optional
@@ -268,16 +284,13 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         bounced light in the cells so reached; ``stopped``: why no further pass
         was kept (None: all were), at the first not explained better (the
         passes end there: the next would start from its shape), or before
-        any solve when the scale cannot be fitted (no cast shadows: the bounced
+        any solve when the scale cannot be fitted (no attached shadows: the bounced
         light is not guessed) or at it under :data:`MIN_LIT_CELLS` of the cells
         are so reached.
     """
     record = dict(sees_itself=sees_itself(first.normals, first.solved, cells=cells),
                   passes=0, scale=None, bounced_share=None, residuals=[], stopped=None)
     if record["sees_itself"] < MIN_LIT_CELLS:
-        return first, None, record
-    if light_masks.count(first.dropped_lights[first.solved]).sum() < MIN_SHADOWED:
-        record["stopped"] = _NO_SHADOWS  # (said before the images are read again)
         return first, None, record
     say = _say if progress else (lambda message: None)
     say(f"{record['sees_itself']:.0%} of the object sees itself: estimating the light it "
@@ -353,7 +366,7 @@ def with_scale_uncertainty(result, moved: np.ndarray):
     return result.with_uncertainty_added(SCALE_UNCERTAINTY * moved)
 
 
-_NO_SHADOWS = "too few cast-shadow measurements to fit its scale"
+_NO_SHADOWS = "too few measurements in attached shadow to fit its scale"
 _WORSE_THAN_BEFORE = "the gauge explains it no better than after the pass before"
 
 

@@ -12,10 +12,8 @@ that view, under the fitted finish at the first match's normals, for a
 second match. :func:`virtual_gauge` is the whole step for a run: the noise
 measured on the scene where the options say "auto" (a rendered gauge has no
 scatter to measure), the finish, the rendered gauge, and the settings that
-describe it (:meth:`colorps.resolve.StackModel.rendered`).
-
-This module sits above :mod:`colorps.gauge`, :mod:`colorps.brdf` and
-:func:`colorps.reconstruct`, which it calls.
+describe it (:meth:`colorps.resolve.StackModel.rendered`). This module sits
+above :mod:`colorps.gauge`, :mod:`colorps.brdf` and :func:`colorps.reconstruct`.
 """
 
 from __future__ import annotations
@@ -33,7 +31,6 @@ from .brdf_fit import fit_brdf, refined_roughness, relative_weights, roughness_b
 from .camera import Camera
 from .errors import ColorPSWarning, InputError
 from .gauge import DEFAULT_VIRTUAL_RADIUS, Gauge
-from .interreflection import SHADOW_BELOW
 from .lights import Lights
 from .noise import estimate_noise, lit_measurements
 from .options import Options
@@ -48,6 +45,9 @@ __all__ = ["corrected", "fit_scene_brdf", "match_along_rays", "matched_again", "
 #: then at those of the previous fit (on DiLiGenT Ball the mean error went
 #: 2.71, 1.96, 1.37, 1.35 degrees after 0, 1, 2, 3 fits).
 SCENE_FITS = 2
+#: Under this share of what the first fit's finish gives it, a measurement is
+#: cast shadow, out of :func:`without_highlight`'s second fit.
+SHADOW_BELOW = 0.75
 #: The first fit starts at a Lambertian gauge's normals, which a rough or coated
 #: finish tilts by degrees: it holds the diffuse falloff at Lambert's for its
 #: first SETTLE_ROUNDS rounds (:func:`colorps.brdf.fit_brdf`) while they settle;
