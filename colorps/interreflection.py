@@ -37,6 +37,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from colorps._checks import mask_box
 from colorps._config import MIN_LIGHTS
 from colorps.bounce import BounceGrid, bounced_light, cell_grid, gather, light_at
 from colorps.errors import InterreflectionWarning
@@ -184,18 +185,22 @@ def _attached_shadows(gauge: Gauge, gauge_stack: np.ndarray, normals: np.ndarray
     from scipy.spatial import cKDTree
 
     inside = gauge.mask & np.isfinite(gauge.normals).all(axis=-1)
+    rows, cols = mask_box(inside, 1)
+    inside = inside[rows, cols]
     gy, gx = np.nonzero(inside)
-    nearest = cKDTree(gauge.normals[inside]).query(np.nan_to_num(normals))[1]
-    radius = int(np.ceil(gauge.sphere[2] * np.sin(np.radians(SHADOW_MARGIN_DEG)))) \
-        if gauge.sphere is not None else 1
-    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
-    disk = dy * dy + dx * dx <= radius * radius
+    if not gy.size:
+        return np.zeros((gauge_stack.shape[0], normals.shape[0]), dtype=bool)
+    nearest = cKDTree(gauge.normals[rows, cols][inside]).query(np.nan_to_num(normals))[1]
+    margin = gauge.sphere[2] * np.sin(np.radians(SHADOW_MARGIN_DEG)) \
+        if gauge.sphere is not None else 1.0
     dark = np.empty((gauge_stack.shape[0], normals.shape[0]), dtype=bool)
     for light, image in enumerate(gauge_stack):
-        value = np.nan_to_num(np.asarray(image, dtype=np.float32)).sum(axis=-1)
-        brightest = float(value[inside].max()) if gy.size else 0.0
-        lit = ndimage.binary_dilation((value > SHADOW_LEVEL * brightest) & inside, disk)
-        dark[light] = ~lit[gy[nearest], gx[nearest]]
+        value = np.nan_to_num(np.asarray(image[rows, cols], dtype=np.float32)).sum(axis=-1)
+        brightest = float(value[inside].max())
+        unlit = ~((value > SHADOW_LEVEL * brightest) & inside)
+        away = ndimage.distance_transform_edt(unlit) if not unlit.all() else \
+            np.full(unlit.shape, np.inf)  # (pixels to the nearest lit one)
+        dark[light] = away[gy[nearest], gx[nearest]] > margin
     return dark & np.isfinite(normals).all(axis=-1)[None]
 
 
