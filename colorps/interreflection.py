@@ -24,9 +24,10 @@ The albedo's absolute scale is the gauge's stated albedo, which users often
 leave at 1: the bounced light's scale is fitted instead (:func:`bounce_scale`),
 on the measurements in attached shadow (the light is behind the surface, as the
 gauge at the same normal shows), where the scene shows the bounced light alone;
-without them it is not guessed, and the bounced light stays in. A pass is kept only when the gauge explains the scene
-without it better (:func:`_explains_better`): a glossy finish's highlights are
-not light a matte surface sends its neighbours.
+without them it is not guessed, and the bounced light stays in. A pass is kept
+only when the gauge explains the scene without it better
+(:func:`_explains_better`): a glossy finish's highlights are not light a matte
+surface sends its neighbours.
 """
 
 from __future__ import annotations
@@ -155,8 +156,9 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result, gauge: Gauge,
     :data:`SHADOW_MARGIN_DEG` of it (:func:`_attached_shadows`), which only
     bounced light reaches. Cast shadows are not used: their partly lit edges (a
     lens's blur, a light's size, a renderer's pixel filter) bias the fit high
-    (Mitsuba's matte pot under 96 lights fitted 2.3 where the bounced light it
-    rendered gives 1.3; on attached shadows 1.38, and 1.38 from that light).
+    (Mitsuba's matte pot under 96 lights fitted 2.3 on them where the bounced
+    light it rendered, its images less those of the direct light alone, fits
+    1.3; on attached shadows 1.38, and the rendered bounced light there 1.38).
     Fitted on up to :data:`SCALE_PIXELS` of the solved pixels (a fixed draw);
     capped where the median albedo would reflect all the light it gets (a few
     pixels' albedo, from few lights, can be far off). None when fewer than
