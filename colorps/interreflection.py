@@ -46,8 +46,8 @@ from colorps.gauge import Gauge
 from colorps.geometry import angular_error
 from colorps.integrate import integrate
 
-__all__ = ["bounce_grid", "bounce_scale", "left_in", "moved_by", "sees_itself",
-           "with_scale_uncertainty", "without_interreflections"]
+__all__ = ["attached_shadows", "bounce_grid", "bounce_scale", "left_in", "moved_by",
+           "sees_itself", "with_scale_uncertainty", "without_interreflections"]
 
 #: Cells (at most) of the grid the bounce is gathered on: 4096 costs 0.3 s for
 #: 32 RGB images on 2 cores, and the bounced light is smooth at that scale.
@@ -148,14 +148,13 @@ def bounce_grid(scene: np.ndarray, normals: np.ndarray, solved: np.ndarray,
     return gather(grid, height, scene, solved, albedo)
 
 
-def bounce_scale(scene: np.ndarray, grid: BounceGrid, result, gauge: Gauge,
-                 gauge_stack: np.ndarray) -> float | None:
+def bounce_scale(scene: np.ndarray, grid: BounceGrid, result,
+                 in_shadow: Callable[[np.ndarray], np.ndarray]) -> float | None:
     """The factor ``grid``'s bounced light is off by: the albedo's unknown absolute scale.
 
     Fitted by least squares, ``scene = scale * bounced``, on the measurements
-    in attached shadow: those whose light leaves the gauge dark at the pixel's
-    normal (``result``'s, the solve ``grid`` was made from) and within
-    :data:`SHADOW_MARGIN_DEG` of it (:func:`_attached_shadows`), which only
+    in attached shadow (``in_shadow``: :func:`attached_shadows` of the gauge,
+    at the normals of ``result``, the solve ``grid`` was made from), which only
     bounced light reaches. Cast shadows are not used: their partly lit edges (a
     lens's blur, a light's size, a renderer's pixel filter) bias the fit high
     (Mitsuba's matte pot under 96 lights fitted 2.3 on them where the bounced
@@ -170,7 +169,7 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result, gauge: Gauge,
     if ys.size > SCALE_PIXELS:
         keep = np.sort(np.random.default_rng(0).choice(ys.size, SCALE_PIXELS, replace=False))
         ys, xs = ys[keep], xs[keep]
-    shadowed = _attached_shadows(gauge, gauge_stack, result.normals[ys, xs])  # (m, n)
+    shadowed = in_shadow(result.normals[ys, xs])  # (m, n)
     gathered = light_at(grid, result.albedo, ys, xs)[shadowed]
     if (gathered > 0).sum() < MIN_SHADOWED:
         return None
@@ -180,32 +179,43 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result, gauge: Gauge,
     return float(np.clip(scale, 0.0, 1.0 / typical if typical > 0 else np.inf))
 
 
-def _attached_shadows(gauge: Gauge, gauge_stack: np.ndarray, normals: np.ndarray
-                      ) -> np.ndarray:
-    """(m, n) bool: whether each light leaves the gauge dark (under
-    :data:`SHADOW_LEVEL` of its brightest) at each of the (n, 3) ``normals``
-    and at every gauge pixel within :data:`SHADOW_MARGIN_DEG` of it."""
+def attached_shadows(gauge: Gauge, gauge_stack: np.ndarray
+                     ) -> Callable[[np.ndarray], np.ndarray]:
+    """Where each light of ``gauge_stack`` leaves the gauge dark (under
+    :data:`SHADOW_LEVEL` of its brightest pixel) at a normal and at every gauge
+    pixel within :data:`SHADOW_MARGIN_DEG` of it: its attached shadow.
+
+    Returns ``in_shadow(normals)``: (m, n) bool at (n, 3) ``normals`` (False
+    where not finite). The gauge's part (each light's dark pixels, by a
+    distance transform of its lit ones in the sphere's box, and the search
+    tree of its normals) is made once, for every pass's normals.
+    """
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
+    m = gauge_stack.shape[0]
     inside = gauge.mask & np.isfinite(gauge.normals).all(axis=-1)
     rows, cols = mask_box(inside, 1)
     inside = inside[rows, cols]
-    gy, gx = np.nonzero(inside)
-    if not gy.size:
-        return np.zeros((gauge_stack.shape[0], normals.shape[0]), dtype=bool)
-    nearest = cKDTree(gauge.normals[rows, cols][inside]).query(np.nan_to_num(normals))[1]
+    if not inside.any():
+        return lambda normals: np.zeros((m, len(normals)), dtype=bool)
+    tree = cKDTree(gauge.normals[rows, cols][inside])
     margin = gauge.sphere[2] * np.sin(np.radians(SHADOW_MARGIN_DEG)) \
         if gauge.sphere is not None else 1.0
-    dark = np.empty((gauge_stack.shape[0], normals.shape[0]), dtype=bool)
+    dark = np.empty((m, int(inside.sum())), dtype=bool)  # (m, gauge pixels)
     for light, image in enumerate(gauge_stack):
         value = np.nan_to_num(np.asarray(image[rows, cols], dtype=np.float32)).sum(axis=-1)
         brightest = float(value[inside].max())
         unlit = ~((value > SHADOW_LEVEL * brightest) & inside)
         away = ndimage.distance_transform_edt(unlit) if not unlit.all() else \
             np.full(unlit.shape, np.inf)  # (pixels to the nearest lit one)
-        dark[light] = away[gy[nearest], gx[nearest]] > margin
-    return dark & np.isfinite(normals).all(axis=-1)[None]
+        dark[light] = away[inside] > margin
+
+    def in_shadow(normals: np.ndarray) -> np.ndarray:
+        nearest = tree.query(np.nan_to_num(normals))[1]
+        return dark[:, nearest] & np.isfinite(normals).all(axis=-1)[None]
+
+    return in_shadow
 
 
 def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_CELLS
@@ -253,7 +263,7 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
     gauge : Gauge
     gauge_stack : (m, Hg, Wg, c) ndarray
         The gauge ``first`` was solved with and its images (what each light
-        gives each normal: :func:`bounce_scale`'s attached shadows).
+        gives each normal: :func:`attached_shadows`).
     passes : int, optional
         Solves without the bounced light, each from the shape of the one before.
     cells : int, optional
@@ -305,9 +315,10 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
     say(f"{record['sees_itself']:.0%} of the object sees itself: estimating the light it "
         "bounces onto itself")
     scene, result, corrected, probe, factor = read_scene(), first, None, None, 1.0
+    in_shadow = attached_shadows(gauge, gauge_stack)
     for index in range(passes):
         grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells)
-        scale = bounce_scale(scene, grid, result, gauge, gauge_stack)
+        scale = bounce_scale(scene, grid, result, in_shadow)
         if scale is None:
             record["stopped"] = _NO_SHADOWS
             break

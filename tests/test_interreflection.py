@@ -162,7 +162,8 @@ def test_the_scale_is_fitted_on_attached_shadows_that_blur_leaves_dark(bounced_f
     albedo = np.where(scene.mask[..., None], scene.albedo / 0.5, np.nan)  # as matched
     truth = SimpleNamespace(solved=scene.mask, normals=scene.normals, albedo=albedo)
     grid = interreflection.bounce_grid(images, scene.normals, scene.mask, albedo)
-    assert interreflection.bounce_scale(images, grid, truth, gauge, gauge_stack) == \
+    in_shadow = interreflection.attached_shadows(gauge, gauge_stack)
+    assert interreflection.bounce_scale(images, grid, truth, in_shadow) == \
         pytest.approx(0.5, rel=0.15)
 
 
