@@ -82,3 +82,19 @@ def gather(cells, out):
                 g = cos_p * cos_q * area[qy, qx] / (np.pi * r2)
                 for i in range(k):
                     out[py, px, i] += g * radiance[qy, qx, i]
+
+
+@njit(cache=True, parallel=True)
+def cell_sums(values, where, step, out):
+    """Sums of ``values`` ((H, W, k) float32) over the pixels ``where`` ((H, W)
+    bool) holds, in ``step`` x ``step`` blocks, added to ``out`` ((h, w, k)
+    float64, h = ceil(H / step), w = ceil(W / step))."""
+    rows, cols = where.shape
+    k = values.shape[2]
+    for cy in prange(out.shape[0]):
+        for y in range(cy * step, min((cy + 1) * step, rows)):
+            for x in range(cols):
+                if where[y, x]:
+                    cx = x // step
+                    for i in range(k):
+                        out[cy, cx, i] += values[y, x, i]

@@ -54,8 +54,7 @@ class CellGrid:
 
     def means(self, values: np.ndarray, where: np.ndarray) -> np.ndarray:
         """Each cell's mean of ``values`` (first two axes the image's) over ``where``."""
-        inside = where.reshape(where.shape + (1,) * (values.ndim - 2))
-        total = _cell_sum(np.where(inside, values, 0.0), self.step)
+        total = _cell_sum(values, where, self.step)
         return total / np.maximum(self.count, 1.0).reshape(self.count.shape +
                                                            (1,) * (values.ndim - 2))
 
@@ -88,10 +87,10 @@ def cell_grid(normals: np.ndarray, surface: np.ndarray, cells: int) -> CellGrid:
     """Group the pixels of ``surface`` ((H, W) bool; ``normals`` (H, W, 3), x right,
     y up, z towards the camera) into at most about ``cells`` square cells."""
     step = max(1, int(np.ceil(np.sqrt(max(int(surface.sum()), 1) / cells))))
-    count = _cell_sum(surface.astype(np.float64), step)
-    mean_normals = _cell_sum(np.where(surface[..., None], normals, 0.0), step)
+    count = _cell_sum(np.ones(surface.shape, np.float32), surface, step)
+    mean_normals = _cell_sum(normals, surface, step)
     mean_normals /= np.maximum(np.linalg.norm(mean_normals, axis=-1, keepdims=True), 1e-12)
-    area = _cell_sum(np.where(surface, 1.0 / np.maximum(normals[..., 2], 0.05), 0.0), step)
+    area = _cell_sum(1.0 / np.maximum(normals[..., 2], 0.05), surface, step)
     valid = (count >= 0.5 * step * step) & (mean_normals[..., 2] > 0.0)
     return CellGrid(step, count, valid, mean_normals, area / (step * step))
 
@@ -194,10 +193,13 @@ def _interpolation(pixels: int, step: int, cells: int) -> np.ndarray:
     return weights
 
 
-def _cell_sum(values: np.ndarray, step: int) -> np.ndarray:
-    """Sums over ``step`` x ``step`` blocks of the first two axes (zero-padded)."""
-    h, w = values.shape[:2]
-    rows, cols = -(-h // step), -(-w // step)
-    pad = [(0, rows * step - h), (0, cols * step - w)] + [(0, 0)] * (values.ndim - 2)
-    blocks = np.pad(values, pad).reshape(rows, step, cols, step, *values.shape[2:])
-    return blocks.sum(axis=(1, 3))
+def _cell_sum(values: np.ndarray, where: np.ndarray, step: int) -> np.ndarray:
+    """Sums (float64) of ``values`` (first two axes the image's, the rest kept) over
+    the pixels ``where`` holds, in ``step`` x ``step`` blocks (the last ones
+    partial): :func:`colorps._bounce_kernels.cell_sums`."""
+    h, w = where.shape
+    rest = values.shape[2:]
+    out = np.zeros((-(-h // step), -(-w // step), int(np.prod(rest))))
+    _bounce_kernels.cell_sums(np.ascontiguousarray(values, dtype=np.float32).reshape(h, w, -1),
+                              np.ascontiguousarray(where, dtype=bool), int(step), out)
+    return out.reshape(*out.shape[:2], *rest)

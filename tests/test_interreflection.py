@@ -80,6 +80,26 @@ def test_gathered_light_in_a_groove_is_what_rays_through_it_see():
         assert grid.irradiance[y, x, 0, 0] == pytest.approx(expected, rel=0.07)
 
 
+def test_cell_means_are_the_means_of_the_pixels_in_each_block():
+    """Blocks cut by the image's edge and pixels off the surface (NaN there)
+    left out, against a loop over the blocks."""
+    rng = np.random.default_rng(1)
+    values = rng.random((23, 17, 2, 3)).astype(np.float32)
+    surface = rng.random((23, 17)) < 0.7
+    values[~surface] = np.nan
+    normals = np.dstack([np.zeros((23, 17, 2)), np.ones((23, 17))])
+    grid = cell_grid(normals, surface, 30)
+    means = grid.means(values, surface)
+    step = grid.step
+    for cy in range(-(-23 // step)):
+        for cx in range(-(-17 // step)):
+            block = np.s_[cy * step:(cy + 1) * step, cx * step:(cx + 1) * step]
+            inside = surface[block]
+            assert grid.count[cy, cx] == inside.sum()
+            expected = values[block][inside].mean(axis=0) if inside.any() else 0.0
+            np.testing.assert_allclose(means[cy, cx], expected, rtol=1e-6)
+
+
 def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
     sphere = synth.sphere_surface(64, 28)
     assert sees_itself(sphere.normals, sphere.mask) == 0.0
