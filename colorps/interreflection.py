@@ -152,7 +152,9 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result,
                  in_shadow: Callable[[np.ndarray], np.ndarray]) -> float | None:
     """The factor ``grid``'s bounced light is off by: the albedo's unknown absolute scale.
 
-    Fitted by least squares, ``scene = scale * bounced``, on the measurements
+    Fitted by least squares, ``scene = dark + scale * bounced`` (``dark``, at
+    least 0, the level shadows hold without any light: a camera's noise
+    clipped at zero, which averages 0.4 sigma, or flare), on the measurements
     in attached shadow (``in_shadow``: :func:`attached_shadows` of the gauge,
     at the normals of ``result``, the solve ``grid`` was made from), which only
     bounced light reaches. Cast shadows are not used: their partly lit edges (a
@@ -173,10 +175,20 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result,
     gathered = light_at(grid, result.albedo, ys, xs)[shadowed]
     if (gathered > 0).sum() < MIN_SHADOWED:
         return None
-    seen = scene[:, ys, xs][shadowed]
-    scale = float((seen * gathered).sum() / (gathered * gathered).sum())
+    scale = _through_dark_level(scene[:, ys, xs][shadowed].ravel(), gathered.ravel())
     typical = float(np.nanmedian(result.albedo[result.solved])) if result.solved.any() else 0.0
     return float(np.clip(scale, 0.0, 1.0 / typical if typical > 0 else np.inf))
+
+
+def _through_dark_level(seen: np.ndarray, gathered: np.ndarray) -> float:
+    """The least-squares slope of ``seen = dark + slope * gathered``, the dark
+    level at least 0 (through the origin where the free fit puts it below)."""
+    seen, gathered = seen.astype(np.float64), gathered.astype(np.float64)
+    centred = gathered - gathered.mean()
+    slope = float((seen * centred).sum() / max(float((centred * centred).sum()), 1e-300))
+    if seen.mean() - slope * gathered.mean() >= 0.0:
+        return slope
+    return float((seen * gathered).sum() / max(float((gathered * gathered).sum()), 1e-300))
 
 
 def attached_shadows(gauge: Gauge, gauge_stack: np.ndarray

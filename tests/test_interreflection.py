@@ -113,15 +113,15 @@ def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
     assert result is first and solved_from is None and record["passes"] == 0
 
 
-def _folds_capture(**finish):
+def _folds_capture(interreflection=1.0, noise=0.002, **finish):
     """Deep folds (96 px, 24 dome lights, cast shadows) of the scene's ``finish``
     (:func:`synth.render`'s keywords) with a physical one-bounce interreflection,
     and a grey (0.5) Lambertian gauge stated as white: the bounced light's scale
     is then 0.5. (scene, its stack, the gauge's stack, gauge)."""
     lights = dome_lights(24)
     scene = folds_surface(96)
-    stack = synth.render(scene, lights, noise=0.002, cast_shadows=True, interreflection=1.0,
-                         **finish)
+    stack = synth.render(scene, lights, noise=noise, cast_shadows=True,
+                         interreflection=interreflection, **finish)
     size = 70
     centre = (size - 1) / 2
     gauge = Gauge.from_sphere((size, size), centre, centre, 30)
@@ -185,6 +185,20 @@ def test_the_scale_is_fitted_on_attached_shadows_that_blur_leaves_dark(bounced_f
     in_shadow = interreflection.attached_shadows(gauge, gauge_stack)
     assert interreflection.bounce_scale(images, grid, truth, in_shadow) == \
         pytest.approx(0.5, rel=0.15)
+
+
+@pytest.mark.parametrize("bounce", [0.0, 1.0])
+def test_the_dark_level_of_clipped_noise_is_not_taken_for_bounced_light(bounce):
+    """A noisy camera (sigma 0.02) whose noise is clipped at zero leaves its
+    shadows 0.4 sigma bright on average. With no bounced light the scale is
+    0 (fitted through the origin: 0.042), with a physical one 0.5 (0.506)."""
+    scene, stack, gauge_stack, gauge = _folds_capture(interreflection=bounce, noise=0.02)
+    albedo = np.where(scene.mask[..., None], scene.albedo / 0.5, np.nan)  # as matched
+    truth = SimpleNamespace(solved=scene.mask, normals=scene.normals, albedo=albedo)
+    grid = interreflection.bounce_grid(stack, scene.normals, scene.mask, albedo)
+    in_shadow = interreflection.attached_shadows(gauge, gauge_stack)
+    scale = interreflection.bounce_scale(stack, grid, truth, in_shadow)
+    assert scale == pytest.approx(0.5 * bounce, rel=0.15, abs=0.01)
 
 
 def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
