@@ -422,8 +422,9 @@ def lens_hint(stack: np.ndarray, gauge: Gauge, first_file: Path) -> dict | None:
             f"{fits[best]:.4f} then, {orthographic:.4f} read orthographically, with the "
             "principal point at the image's centre): without --camera its normals are read "
             f"as if seen from infinitely far, {record['normals_off_deg']:.2f} degrees off "
-            "(each normal's uncertainty takes that in); give --camera FOCAL_PX or the "
-            "camera's K.txt", CameraWarning, stacklevel=3)
+            "(each normal's uncertainty takes that in); give the camera's K.txt, or "
+            f"--camera {record['focal_px']:.0f} for this estimate (its principal point at "
+            "the image's centre)", CameraWarning, stacklevel=3)
     return record
 
 

@@ -436,9 +436,10 @@ def test_a_lens_is_told_from_a_matte_gauges_shading(tmp_path):
     stack += rng.normal(0, 0.002, stack.shape).astype(np.float32)
     circle = find_sphere(stack)
     gauge = Gauge.from_sphere(shape, *circle)
-    with pytest.warns(CameraWarning, match="through a lens of focal length about"):
+    with pytest.warns(CameraWarning, match="through a lens of focal length about") as said:
         record = lens_hint(stack, gauge, tmp_path / "gauge_0.exr")
     assert record["focal_px"] == pytest.approx(900.0, rel=0.05)
+    assert f"--camera {record['focal_px']:.0f} for this estimate" in str(said[0].message)
     assert record["residual"] < 0.25 * record["orthographic_residual"]
 
     flat = synth.render(synth.sphere_surface(shape, circle[2], centre=circle[:2]),
