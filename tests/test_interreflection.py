@@ -114,10 +114,11 @@ def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
 
 
 def _folds_capture(interreflection=1.0, noise=0.002, **finish):
-    """Deep folds (96 px, 24 dome lights, cast shadows) of the scene's ``finish``
-    (:func:`synth.render`'s keywords) with a physical one-bounce interreflection,
-    and a grey (0.5) Lambertian gauge stated as white: the bounced light's scale
-    is then 0.5. (scene, its stack, the gauge's stack, gauge)."""
+    """Deep folds (96 px, 24 dome lights, cast shadows, Gaussian ``noise``
+    clipped at 0) of the scene's ``finish`` (:func:`synth.render`'s keywords)
+    with a one-bounce ``interreflection`` (1: physical), and a grey (0.5)
+    Lambertian gauge stated as white: a physical bounce's scale is then 0.5.
+    (scene, its stack, the gauge's stack, gauge)."""
     lights = dome_lights(24)
     scene = folds_surface(96)
     stack = synth.render(scene, lights, noise=noise, cast_shadows=True,
