@@ -169,6 +169,16 @@ def test_bounced_light_is_taken_out_of_folds(bounced_folds, capsys):
     assert np.mean(error <= result.uncertainty[ok]) > 0.6
 
 
+def _scale_at_true_shape(scene, images, gauge_stack, gauge) -> float | None:
+    """:func:`interreflection.bounce_scale` of ``images`` at the folds' true shape,
+    with their albedo as a match against the grey gauge stated white gives it."""
+    albedo = np.where(scene.mask[..., None], scene.albedo / 0.5, np.nan)
+    truth = SimpleNamespace(solved=scene.mask, normals=scene.normals, albedo=albedo)
+    grid = interreflection.bounce_grid(images, scene.normals, scene.mask, albedo)
+    return interreflection.bounce_scale(images, grid, truth,
+                                        interreflection.attached_shadows(gauge, gauge_stack))
+
+
 @pytest.mark.parametrize("blur", [0.0, 1.0, 2.0])
 def test_the_scale_is_fitted_on_attached_shadows_that_blur_leaves_dark(bounced_folds, blur):
     """The scale, fitted on the true shape, is the true one (the grey gauge
@@ -180,12 +190,7 @@ def test_the_scale_is_fitted_on_attached_shadows_that_blur_leaves_dark(bounced_f
 
     scene, stack, gauge_stack, gauge = bounced_folds
     images = ndimage.gaussian_filter(stack, (0, blur, blur, 0)) if blur else stack
-    albedo = np.where(scene.mask[..., None], scene.albedo / 0.5, np.nan)  # as matched
-    truth = SimpleNamespace(solved=scene.mask, normals=scene.normals, albedo=albedo)
-    grid = interreflection.bounce_grid(images, scene.normals, scene.mask, albedo)
-    in_shadow = interreflection.attached_shadows(gauge, gauge_stack)
-    assert interreflection.bounce_scale(images, grid, truth, in_shadow) == \
-        pytest.approx(0.5, rel=0.15)
+    assert _scale_at_true_shape(scene, images, gauge_stack, gauge) == pytest.approx(0.5, rel=0.15)
 
 
 @pytest.mark.parametrize("bounce", [0.0, 1.0])
@@ -194,12 +199,8 @@ def test_the_dark_level_of_clipped_noise_is_not_taken_for_bounced_light(bounce):
     shadows 0.4 sigma bright on average. With no bounced light the scale is
     0 (fitted through the origin: 0.042), with a physical one 0.5 (0.506)."""
     scene, stack, gauge_stack, gauge = _folds_capture(interreflection=bounce, noise=0.02)
-    albedo = np.where(scene.mask[..., None], scene.albedo / 0.5, np.nan)  # as matched
-    truth = SimpleNamespace(solved=scene.mask, normals=scene.normals, albedo=albedo)
-    grid = interreflection.bounce_grid(stack, scene.normals, scene.mask, albedo)
-    in_shadow = interreflection.attached_shadows(gauge, gauge_stack)
-    scale = interreflection.bounce_scale(stack, grid, truth, in_shadow)
-    assert scale == pytest.approx(0.5 * bounce, rel=0.15, abs=0.01)
+    assert _scale_at_true_shape(scene, stack, gauge_stack, gauge) == \
+        pytest.approx(0.5 * bounce, rel=0.15, abs=0.01)
 
 
 def test_a_pass_the_gauge_explains_worse_is_not_kept(bounced_folds):
