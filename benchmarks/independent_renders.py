@@ -24,7 +24,8 @@ noise, its microfacet finishes. Each capture is
   normals (the mask: pixels whose every sample hit the object).
 
 Then ``colorps reconstruct`` (each in a fresh process) in gauge mode with
-default options, gauge mode with ``--camera K.txt``, and virtual mode
+default options, gauge mode with ``--camera K.txt`` (and the same with
+``--no-interreflections``: the bounced light left in, its radii counting it), and virtual mode
 (``--lights``, ``--camera``), against least squares on every light with the
 true lights (Woodham; the bands' mean). It prints a markdown table: mean
 (refused = 90 degrees) / median / solved, the share of errors within the 68 %
@@ -221,6 +222,8 @@ def main() -> None:
                  "--gauge-albedo", str(GAUGE_ALBEDO)]
         camera = ["--camera", str(folder / "K.txt")]
         runs = {"gauge, default options": gauge, "gauge, --camera": gauge + camera,
+                "gauge, --camera --no-interreflections": [*gauge, *camera,
+                                                          "--no-interreflections"],
                 "virtual (--lights), --camera": ["--lights", str(folder / "lights.json"), *camera]}
         for name, extra in runs.items():
             out = folder / ("out-" + name.split(",")[0].split(" ")[0] + str(len(extra)))

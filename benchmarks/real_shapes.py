@@ -281,8 +281,9 @@ def main(argv=None) -> None:
         seconds = time.perf_counter() - t0
         if checked.get("finish", {}).get("taken"):
             name += " (the finish route)"
-        if extra.get("interreflection"):  # the bounced light left in
-            kept = reconstruct(stack, gauge_stack, gauge, mask=mask, **clip)
+        if extra.get("interreflection"):  # the bounced light left in (and in the radii)
+            kept = solved_by_reconstruct(stack, gauge_stack, gauge, mask, eight_bit, camera=camera,
+                                         options=Options(interreflections=False, **clip))[0]
             mean, median, solved = scores(kept.normals, kept.solved, scene.normals, mask)
             print(f"| (the same, --no-interreflections) | {mean:.2f} / {median:.2f} / "
                   f"{solved:.2%} | | | {facets(kept.normals, kept.solved & mask):.2%} | "

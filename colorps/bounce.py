@@ -23,8 +23,8 @@ import numpy as np
 
 from colorps import _bounce_kernels
 
-__all__ = ["BounceGrid", "CellGrid", "bounced_light", "cell_grid", "cell_heights", "gather",
-           "light_at"]
+__all__ = ["BounceGrid", "CellGrid", "at_pixels", "bounced_light", "cell_grid", "cell_heights",
+           "gather", "light_at"]
 
 
 @dataclass(frozen=True)
@@ -139,17 +139,10 @@ def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.nd
 def bounced_light(grid: BounceGrid, albedo: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The light each pixel reflects from the rest of the surface, (m, H, W, c) float32.
 
-    The grid's irradiance, interpolated bilinearly between valid cell centres
-    (beyond the outer centres: the nearest), times each pixel's albedo (0
-    where it has none).
+    The grid's irradiance, interpolated as :func:`at_pixels` does, times each
+    pixel's albedo (0 where it has none).
     """
-    rows = _interpolation(shape[0], grid.step, grid.valid.shape[0])
-    cols = _interpolation(shape[1], grid.step, grid.valid.shape[1]).T
-
-    def spread(cell_map: np.ndarray) -> np.ndarray:  # (h, w) -> (H, W), by two products
-        return rows @ cell_map.astype(np.float32) @ cols
-
-    weight = np.maximum(spread(grid.valid), 1e-12)
+    spread, weight = _spreading(grid, shape)
     m, c = grid.irradiance.shape[2:]
     out = np.empty((m, *shape, c), dtype=np.float32)
     reflect = np.nan_to_num(albedo).astype(np.float32) / weight[..., None]
@@ -157,6 +150,27 @@ def bounced_light(grid: BounceGrid, albedo: np.ndarray, shape: tuple[int, int]) 
         for k in range(c):
             out[i, ..., k] = spread(grid.irradiance[:, :, i, k] * grid.valid) * reflect[..., k]
     return out
+
+
+def at_pixels(grid: BounceGrid, cell_map: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A map of ``grid``'s cells ((h, w)) at every pixel of an image of ``shape``,
+    (H, W) float32: interpolated bilinearly between valid cell centres (beyond
+    the outer centres: the nearest)."""
+    spread, weight = _spreading(grid, shape)
+    return spread(np.where(grid.valid, cell_map, 0.0)) / weight
+
+
+def _spreading(grid: BounceGrid, shape: tuple[int, int]):
+    """``spread(cell_map)``, (h, w) -> (H, W) by two products with each pixel's
+    weights of the cells of :func:`_neighbours`, and the valid cells' weight at
+    each pixel (at least 1e-12): their ratio interpolates between valid cells."""
+    rows = _interpolation(shape[0], grid.step, grid.valid.shape[0])
+    cols = _interpolation(shape[1], grid.step, grid.valid.shape[1]).T
+
+    def spread(cell_map: np.ndarray) -> np.ndarray:
+        return rows @ cell_map.astype(np.float32) @ cols
+
+    return spread, np.maximum(spread(grid.valid), 1e-12)
 
 
 def light_at(grid: BounceGrid, albedo: np.ndarray, ys: np.ndarray, xs: np.ndarray

@@ -40,14 +40,15 @@ import numpy as np
 
 from colorps._checks import mask_box
 from colorps._config import MIN_LIGHTS
-from colorps.bounce import BounceGrid, bounced_light, cell_grid, gather, light_at
+from colorps.bounce import BounceGrid, at_pixels, bounced_light, cell_grid, gather, light_at
 from colorps.errors import InterreflectionWarning
 from colorps.gauge import Gauge
 from colorps.geometry import angular_error
 from colorps.integrate import integrate
 
 __all__ = ["attached_shadows", "bounce_grid", "bounce_scale", "left_in", "moved_by",
-           "sees_itself", "with_scale_uncertainty", "without_interreflections"]
+           "sees_itself", "with_bounce_left_in", "with_scale_uncertainty",
+           "without_interreflections"]
 
 #: Cells (at most) of the grid the bounce is gathered on: 4096 costs 0.3 s for
 #: 32 RGB images on 2 cores, and the bounced light is smooth at that scale.
@@ -321,7 +322,8 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         passes end there: the next would start from its shape), or before
         any solve when the scale cannot be fitted (no attached shadows: the bounced
         light is not guessed) or at it under :data:`MIN_LIT_CELLS` of the cells
-        are so reached.
+        are so reached; ``fitted_scale``, when no pass was kept after the scale
+        was fitted (for :func:`with_bounce_left_in`).
     """
     record = dict(sees_itself=sees_itself(first.normals, first.solved, cells=cells),
                   passes=0, scale=None, bounced_share=None, residuals=[], stopped=None)
@@ -330,7 +332,7 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
     say = _say if progress else (lambda message: None)
     say(f"{record['sees_itself']:.0%} of the object sees itself: estimating the light it "
         "bounces onto itself")
-    scene, result, corrected, probe, factor = read_scene(), first, None, None, 1.0
+    scene, result, corrected, probe, factor, scale = read_scene(), first, None, None, 1.0, None
     in_shadow = attached_shadows(gauge, gauge_stack)
     for index in range(passes):
         grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells)
@@ -373,9 +375,51 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
             np.median(scale * grid.share[reached])))
     if record["stopped"] and not record["passes"]:
         say(f"the bounced light stays in: {record['stopped']}")
+        if scale is not None:
+            record["fitted_scale"] = scale
     return (result if corrected is None else
             with_scale_uncertainty(result, moved_by(result, first))), \
         corrected, record
+
+
+def with_bounce_left_in(result, record: dict, *, cells: int = BOUNCE_CELLS):
+    """``result`` with its 68 % radii widened by the bounced light left in its
+    measurements, when ``record`` (:func:`without_interreflections`' or
+    :func:`left_in`'s) says no pass took it out.
+
+    A matte pixel whose measurements hold a share s of light bounced from walls
+    of normal n_w shades like the normal n + s n_w (up to its length): its normal
+    leans towards the walls by up to arcsin(s) (when they face it at 90 +
+    arcsin(s) degrees), an error its match cannot see, the sum being one more
+    shading. That angle is added to each radius in quadrature
+    (:meth:`colorps.Reconstruction.with_uncertainty_added`), s estimated from the
+    solved shape and albedo alone (:func:`_lit_alike`: every wall lit as the
+    pixel it lights), times the bounced light's scale where it was fitted
+    (``record``'s ``fitted_scale``, :func:`bounce_scale`; else the albedo's
+    stated scale). Mitsuba's pot under 32 lights solved with the bounced light
+    in: matte 22 -> 71 % of the errors within the radius, plastic 32 -> 75 %.
+    ``record`` gets ``left_in_share``, the median s over the solved pixels
+    (none when the object does not see itself: ``sees_itself`` under
+    :data:`MIN_LIT_CELLS`).
+    """
+    if record.get("passes") or record.get("sees_itself", 1.0) < MIN_LIT_CELLS or \
+            not result.solved.any():
+        return result
+    grid = _lit_alike(result, cells)
+    share = np.clip(record.get("fitted_scale", 1.0) *
+                    at_pixels(grid, grid.share, result.solved.shape), 0.0, 1.0)
+    share[~result.solved] = 0.0
+    record["left_in_share"] = float(np.median(share[result.solved]))
+    return result.with_uncertainty_added(np.degrees(np.arcsin(share)))
+
+
+def _lit_alike(result, cells: int) -> BounceGrid:
+    """The light ``result``'s solved object bounces onto itself were every wall lit
+    as brightly as the pixel it lights: its radiance is its albedo (the bounced
+    share of a band then the sum over the walls of their albedo times their form
+    factor, whatever the lights)."""
+    albedo = np.nan_to_num(result.albedo).astype(np.float32)
+    return bounce_grid(albedo[None], result.normals, result.solved, albedo, cells=cells)
 
 
 def _say(message: str) -> None:

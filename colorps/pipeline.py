@@ -53,6 +53,7 @@ from .interreflection import (
     PASSES_AGAIN,
     left_in,
     moved_by,
+    with_bounce_left_in,
     with_scale_uncertainty,
     without_interreflections,
 )
@@ -237,6 +238,7 @@ def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Option
     if moved is not None and result is not corrected:  # solved again: the scale's radius
         result = with_scale_uncertainty(result, moved)
     del solved_from, corrected, moved
+    result = with_bounce_left_in(result, bounced)  # (when no pass took it out)
     result = with_lens_bias(result, gauge, checked)  # a lens read orthographically
     result = with_falloff_trade(result, virtual, lights, inputs.virtual_radius, checked)
     return result, preview, run, gauge, virtual, checked, bounced
