@@ -405,9 +405,12 @@ def with_bounce_left_in(result, record: dict, *, cells: int = BOUNCE_CELLS):
     if record.get("passes") or record.get("sees_itself", 1.0) < MIN_LIT_CELLS or \
             not result.solved.any():
         return result
+    scale = record.get("fitted_scale", 1.0)
+    if scale <= 0.0:  # the shadows show none
+        record["left_in_share"] = 0.0
+        return result
     grid = _lit_alike(result, cells)
-    share = np.clip(record.get("fitted_scale", 1.0) *
-                    at_pixels(grid, grid.share, result.solved.shape), 0.0, 1.0)
+    share = np.clip(scale * at_pixels(grid, grid.share, result.solved.shape), 0.0, 1.0)
     share[~result.solved] = 0.0
     record["left_in_share"] = float(np.median(share[result.solved]))
     return result.with_uncertainty_added(np.degrees(np.arcsin(share)))

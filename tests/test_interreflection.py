@@ -176,7 +176,7 @@ def test_bounced_light_left_in_widens_the_radii_as_much_as_it_tilts(bounced_fold
     the radius); the radius counts it from the shape and albedo alone: at the
     true scale (the grey gauge stated white: 0.5) 55 % of the errors lie within
     it, at the stated one (twice the truth) 99 %. A pass that took the light out
-    leaves the radii alone."""
+    leaves the radii alone, and so does a scale fitted at 0."""
     scene, stack, gauge_stack, gauge = bounced_folds
     first = reconstruct(stack, gauge_stack, gauge, mask=scene.mask)
     ok = scene.mask & first.solved
@@ -191,6 +191,8 @@ def test_bounced_light_left_in_widens_the_radii_as_much_as_it_tilts(bounced_fold
     assert within(at_true_scale) < within(with_bounce_left_in(first, {}))
     assert 0.02 < record["left_in_share"] < 0.2
     assert with_bounce_left_in(first, dict(passes=1)) is first
+    none_seen = dict(fitted_scale=0.0)  # the shadows showed no bounced light
+    assert with_bounce_left_in(first, none_seen) is first and none_seen["left_in_share"] == 0
 
 
 def _scale_at_true_shape(scene, images, gauge_stack, gauge) -> float | None:
