@@ -268,13 +268,19 @@ def _encoding_verdict(fit, stack, fitted: float, encoding: str, top_code: int | 
                       first_file: Path, what: str) -> dict:
     """The other decoding's fit, and whether to read the files the other way."""
     record = dict(other_encoding_residual=None, decoded_as=None)
-    if top_code is None:
-        return record
+    if top_code is None and encoding != "srgb":
+        return record  # (floating-point files are linear unless told otherwise)
     from .io import srgb_decode
 
     read_as_srgb = encoding in ("auto", "srgb")
-    other = linear_codes(stack, top_code) if read_as_srgb else \
-        srgb_decode(np.clip(stack, 0, 1))
+    if top_code is None:  # floating-point files told to be sRGB: as stored
+        import colour
+
+        other = colour.cctf_encoding(np.maximum(np.asarray(stack, np.float64), 0.0),
+                                     function="sRGB")
+    else:
+        other = linear_codes(stack, top_code) if read_as_srgb else \
+            srgb_decode(np.clip(stack, 0, 1))
     other_fit = fit(other)
     record["other_encoding_residual"] = other_fit
     if not other_fit < ENCODING_RATIO * fitted:
@@ -331,7 +337,7 @@ def check_gauge(stack: np.ndarray, gauge: Gauge, first_file: Path, encoding: str
         How the files were decoded ("auto": sRGB for integer files).
     top_code : int or None
         The files' largest code (255 for 8-bit); None for floating-point files
-        (no encoding question).
+        (linear: no encoding question, unless ``encoding`` is "srgb").
 
     Returns
     -------

@@ -592,6 +592,23 @@ def test_swapped_stacks_and_the_wrong_encoding_are_warned_about(capture, tmp_pat
     assert errors["lin", "auto"] < 3.0
 
 
+def test_float_files_told_to_be_srgb_are_warned_about_when_linear_fits(capture, tmp_path,
+                                                                        capsys):
+    """Floating-point files are linear unless --encoding srgb says otherwise; told
+    so, the gauge's fit is compared with the values as stored, and the warning
+    says to pass --encoding linear when those fit far better (as they do here)."""
+    out = tmp_path / "told-srgb"
+    assert main(args_for(capture, out, None, None, "--encoding", "srgb", "--no-height")) == 0
+    err = capsys.readouterr().err
+    assert "gauge_00.exr" in err and "pass --encoding linear" in err, err
+    check = json.loads((out / "report.json").read_text())["gauge_check"]
+    assert check["other_encoding_residual"] < 0.5 * check["sphere_fit_residual"]
+    assert main(args_for(capture, tmp_path / "as-stored", None, None, "--no-height")) == 0
+    assert "--encoding" not in capsys.readouterr().err
+    check = json.loads((tmp_path / "as-stored" / "report.json").read_text())["gauge_check"]
+    assert check["other_encoding_residual"] is None
+
+
 def test_light_file_runs_choose_the_encoding_the_lights_explain(tmp_path, capsys):
     """With calibrated lights, 8-bit linear files are found so from the scene's fit
     to its lights: read as linear under auto (as good as when told), warned about
