@@ -22,8 +22,8 @@ from .geometry import circle_of_cone, silhouette_cone, sphere_normals
 from .sphere_edge import edge_points
 from .spikes import BRIGHT_PERCENTILE, spike_free
 
-__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "find_sphere", "parse_albedo",
-           "rim_margin"]
+__all__ = ["DEFAULT_ALBEDO", "MIN_RADIUS", "Gauge", "check_circle", "find_sphere",
+           "parse_albedo", "rim_margin"]
 
 #: Albedo of a gauge when none is given: a white gauge gives absolute albedo.
 DEFAULT_ALBEDO = 1.0
@@ -151,15 +151,7 @@ class Gauge:
             When the sphere is not entirely inside the image, or too small.
         """
         h, w = shape
-        values = np.array([cx, cy, radius], dtype=np.float64)
-        if not np.all(np.isfinite(values)) or radius <= 0:
-            raise GaugeError(f"sphere: centre and radius must be finite, radius > 0; got "
-                             f"{cx}, {cy}, {radius}")
-        if cx - radius < -0.5 or cy - radius < -0.5 or cx + radius > w - 0.5 or \
-                cy + radius > h - 0.5:
-            raise GaugeError(
-                f"sphere: circle at ({cx:g}, {cy:g}) with radius {radius:g} is partly "
-                f"outside the {w}x{h} gauge image")
+        check_circle(shape, (cx, cy, radius))
         if radius < MIN_RADIUS:
             raise GaugeError(f"sphere: radius {radius:g} px is too small for a useful "
                              f"table (need at least {MIN_RADIUS:g} px; 100+ px recommended)")
@@ -344,6 +336,21 @@ def find_sphere(stack, camera: Camera | None = None, *, exclude=None
     return _edge_circle(brightest, (cx, cy, r), bright, camera)
 
 
+def check_circle(shape: tuple[int, int], circle: tuple[float, float, float]) -> None:
+    """Raise GaugeError unless ``circle`` (cx, cy, r; pixels) lies whole, finite
+    and of positive radius, inside an image of ``shape`` (H, W)."""
+    h, w = shape
+    cx, cy, radius = circle
+    if not np.all(np.isfinite(np.array(circle, dtype=np.float64))) or radius <= 0:
+        raise GaugeError(f"sphere: centre and radius must be finite, radius > 0; got "
+                         f"{cx}, {cy}, {radius}")
+    if cx - radius < -0.5 or cy - radius < -0.5 or cx + radius > w - 0.5 or \
+            cy + radius > h - 0.5:
+        raise GaugeError(
+            f"sphere: circle at ({cx:g}, {cy:g}) with radius {radius:g} is partly "
+            f"outside the {w}x{h} gauge image")
+
+
 def rim_margin(stack, circle: tuple[float, float, float], camera: Camera | None = None
                ) -> float:
     """How far inside its rim a photographed sphere's pixels are usable (pixels).
@@ -370,6 +377,11 @@ def rim_margin(stack, circle: tuple[float, float, float], camera: Camera | None 
     float
         Pixels; pass it as ``Gauge.from_sphere(..., rim_margin=...)``.
 
+    Raises
+    ------
+    GaugeError
+        When ``circle`` is not entirely inside the images (:func:`check_circle`).
+
     Examples
     --------
     >>> from colorps import synth
@@ -382,6 +394,7 @@ def rim_margin(stack, circle: tuple[float, float, float], camera: Camera | None 
     data = np.asarray(stack, dtype=np.float32)
     if data.ndim == 3:
         data = data[..., None]
+    check_circle(data.shape[1:3], circle)
     cx, cy, r = (float(v) for v in circle)
     unmeasured = max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION * r)
     brightest, bright = _brightest(data)

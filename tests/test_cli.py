@@ -74,6 +74,8 @@ def test_list_file_input(sample, tmp_path):
     (lambda a, s: a.__setitem__(a.index("--gauge") + 1, str(s / "gauge_0[0-2].exr")),
      "scene has 5 images but the gauge 3"),
     (lambda a, s: a.__setitem__(a.index("--sphere") + 1, "30,30,500"), "partly outside"),
+    (lambda a, s: a.__setitem__(a.index("--sphere") + 1, "1000,1000,50"),  # (off the images:
+     "partly outside"),  # the rim's measure had found no pixel to sample)
     (lambda a, s: a.__setitem__(a.index("--scene") + 1, str(s / "missing.exr")),
      "missing.exr: no such file"),
 ])
