@@ -201,6 +201,12 @@ class Options:
         if self.band is not None and self.band != "luminance" and not _is_count(self.band, 0):
             raise InputError(f"band: expected 'luminance' or a channel index, "
                              f"got {self.band!r}")
+        for name, given in (("band", self.band is not None),
+                            ("colourspace", self.colourspace != type(self).colourspace)):
+            if given and self.mode == "colour":  # (not silently ignored)
+                raise InputError(f"{name}: chooses the one band of mono mode, but the mode is "
+                                 "colour (the default), which matches every band: pass "
+                                 "--mode mono with it, or leave it out")
         if self.grid_n is not None and self.grid_n != "auto" and not _is_count(self.grid_n, 1):
             raise InputError(f"grid_n: expected a positive integer, 'auto' or None, "
                              f"got {self.grid_n!r}")

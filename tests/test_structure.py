@@ -41,9 +41,11 @@ def test_cli_converts_every_option_text():
                           max_distance=0.2, encoding="srgb", mesh="obj", read_noise=0.002,
                           gain=0.0, band_weights=False, light_subsets=False,
                           max_dropped_lights=1, max_residual=None, memory_limit_gib=None)
-    assert cli_options("--band", "luminance", "--grid-n", "7", "--clip-level", "0.9",
-                       "--no-height", "--memory-limit", "2.5").replace(mesh=None) == \
-        Options(band="luminance", grid_n=7, clip_level=0.9, height=False, memory_limit_gib=2.5)
+    assert cli_options("--mode", "mono", "--band", "luminance", "--grid-n", "7",
+                       "--clip-level", "0.9", "--no-height", "--memory-limit",
+                       "2.5").replace(mesh=None) == \
+        Options(mode="mono", band="luminance", grid_n=7, clip_level=0.9, height=False,
+                memory_limit_gib=2.5)
 
 
 @pytest.mark.parametrize("field, value", [
@@ -52,7 +54,7 @@ def test_cli_converts_every_option_text():
     ("clip_level", -1.0), ("clip_level", float("nan")), ("max_distance", 0),
     ("read_noise", -0.1), ("gain", "big"), ("max_dropped_lights", -1), ("max_residual", 0),
     ("encoding", "gamma"), ("mesh", "stl"), ("memory_limit_gib", "all"),
-    ("memory_limit_gib", 0)])
+    ("memory_limit_gib", 0), ("band", 1), ("colourspace", "ITU-R BT.2020")])  # (colour mode)
 def test_bad_option_names_its_field(field, value):
     with pytest.raises(InputError, match=f"^{field}: "):
         Options(**{field: value})
