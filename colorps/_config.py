@@ -17,3 +17,5 @@ AUTO_N_SAMPLE = 4000
 #: Fewest lights a pixel may be matched on (light subsets, shadows): three
 #: directions fix a normal.
 MIN_LIGHTS = 3
+#: Smallest usable gauge sphere radius (pixels).
+MIN_RADIUS = 8.0

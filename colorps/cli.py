@@ -24,7 +24,8 @@ from .options import FLOAT_DARK_LEVEL, NORMAL_CONVENTIONS, Options
 from .pipeline import reconstruct_files
 from .reasons import Reason
 from .relight import FINISHES, RELIT_FORMATS
-from .synth import FILE_FORMATS, LIGHT_LAYOUTS
+from .sample import run_demo, write_synthetic_folder
+from .synth import FILE_FORMATS, LIGHT_LAYOUTS, SyntheticCapture
 
 __all__ = ["build_parser", "main"]
 
@@ -347,23 +348,29 @@ def build_parser() -> argparse.ArgumentParser:
     syn = sub.add_parser("synth", formatter_class=_FORMATTER,
                          help="render a synthetic smiley scene + sphere gauge with truth")
     syn.add_argument("--out", required=True, metavar="DIR")
-    syn.add_argument("--size", type=_positive_int, default=256, help="scene size (px)")
-    syn.add_argument("--images", type=_positive_int, default=8, help="number of images m")
-    syn.add_argument("--theta", type=float, default=45.0, help="light angle from view (deg)")
-    syn.add_argument("--lights", choices=LIGHT_LAYOUTS, default="white",
-                     help="white, one coloured light per image, or two colours per image")
-    syn.add_argument("--brdf", choices=("lambert", "oren-nayar"), default="lambert")
-    syn.add_argument("--noise", type=float, default=0.0, help="Gaussian noise sigma (0..1)")
-    syn.add_argument("--gauge-radius", type=float, default=100.0, help="sphere radius (px)")
-    syn.add_argument("--seed", type=int, default=0)
-    syn.add_argument("--relief", type=float, default=0.12,
+    made = SyntheticCapture()  # (its defaults)
+    syn.add_argument("--size", type=_positive_int, default=made.size, help="scene size (px)")
+    syn.add_argument("--images", type=_positive_int, default=made.images,
+                     help="number of images m")
+    syn.add_argument("--theta", type=float, default=made.theta, help="light angle (deg)")
+    syn.add_argument("--lights", choices=LIGHT_LAYOUTS, default=made.lights,
+                     help="white, one coloured light per image, two colours per image, or "
+                     "white over half the azimuths")
+    syn.add_argument("--brdf", choices=("lambert", "oren-nayar"), default=made.brdf)
+    syn.add_argument("--noise", type=float, default=made.noise, help="noise sigma (0..1)")
+    syn.add_argument("--gauge-radius", type=float, default=made.gauge_radius,
+                     help="sphere radius (px)")
+    syn.add_argument("--seed", type=int, default=made.seed)
+    syn.add_argument("--relief", type=float, default=made.relief,
                      help="height of the eyes in face radii (the mouth is 0.8 of it deep)")
     syn.add_argument("--cast-shadows", action="store_true",
                      help="the relief casts shadows (truth in truth_shadows.png)")
-    syn.add_argument("--gloss", type=float, default=0.0,
+    syn.add_argument("--gloss", type=float, default=made.gloss,
                      help="strength of a white highlight the matte gauge does not share")
-    syn.add_argument("--format", dest="file_format", choices=FILE_FORMATS, default="exr",
+    syn.add_argument("--format", dest="file_format", choices=FILE_FORMATS,
+                     default=made.file_format,
                      help="half-float linear EXR, or 8-bit sRGB PNG like a camera's")
+    syn.add_argument("--overwrite", action="store_true", help="replace an earlier capture")
     return parser
 
 
@@ -477,16 +484,14 @@ def _run(args, received: list[int]) -> int:
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
                       f"{median:.2f}, {s.residual_median_noise_units or 0.0:.2f} in noise "
                       f"units before the model scale {s.model_scale:.2f}; "
-                      f"{s.seconds.run:.2f} s in all); "
-                      f"results in {args.out}/")
+                      f"{s.seconds.run:.2f} s in all); results in {args.out}/")
         elif args.command == "batch":
             return _batch(args)
         elif args.command == "integrate":
             z = integrate_file(args.normals, args.out, mask_path=args.mask,
                                weights_path=args.weights, method=args.method, mesh=args.mesh,
                                overwrite=args.overwrite)
-            inside = np.isfinite(z)
-            print(f"integrated {inside.sum()} pixels; relief depth "
+            print(f"integrated {np.isfinite(z).sum()} pixels; relief depth "
                   f"{np.nanmax(z) - np.nanmin(z):.2f} px; wrote {args.out}")
         elif args.command == "calibrate-lights":
             _, found, sphere, table, written = calibrate_lights_files(
@@ -507,18 +512,12 @@ def _run(args, received: list[int]) -> int:
         elif args.command == "view":
             _view(args)
         elif args.command == "demo":
-            from .sample import run_demo
-
             _, report = run_demo(args.out, args.data, args.mode, args.overwrite)
             print("\n".join(report.lines(args.mode, args.out)))
         elif args.command == "synth":
-            from .synth import write_synthetic
-
-            write_synthetic(args.out, size=args.size, images=args.images, theta=args.theta,
-                            lights=args.lights, brdf=args.brdf, noise=args.noise,
-                            gauge_radius=args.gauge_radius, seed=args.seed,
-                            relief=args.relief, cast_shadows=args.cast_shadows,
-                            gloss=args.gloss, file_format=args.file_format)
+            write_synthetic_folder(args.out, SyntheticCapture(**{
+                field.name: getattr(args, field.name) for field in fields(SyntheticCapture)}),
+                args.overwrite)
             print(f"wrote a synthetic stack with ground truth to {args.out}/")
     except BaseException as exc:
         # Whatever failed after a signal arrived failed because of it.

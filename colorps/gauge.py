@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._config import MIN_RADIUS
 from .camera import Camera
 from .errors import GaugeError, InputError
 from .geometry import circle_of_cone, silhouette_cone, sphere_normals
@@ -32,8 +33,6 @@ DEFAULT_ALBEDO = 1.0
 DEFAULT_VIRTUAL_RADIUS = 100.0
 
 # ---------------------------------------------------------------- tuning
-#: Smallest usable sphere radius (pixels).
-MIN_RADIUS = 8.0
 #: Pixels closer than max(RIM_MARGIN_PX, RIM_MARGIN_FRACTION r) to the rim are
 #: left out of the table when the edge is not measured (Gauge.from_sphere's
 #: default): the normal turns fastest there and pixels mix sphere and background.

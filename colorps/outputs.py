@@ -242,7 +242,8 @@ def save_reconstruction(result: Reconstruction, out_dir, *,
 
 
 def write_folder(out_dir, writers: dict[str, Callable[[Path], object]], *,
-                 overwrite: bool = False) -> list[Path]:
+                 overwrite: bool = False, replaces: Callable[[str], bool] | None = None
+                 ) -> list[Path]:
     """Write files all together or not at all (see :func:`_write_folder`).
 
     Parameters
@@ -253,16 +254,22 @@ def write_folder(out_dir, writers: dict[str, Callable[[Path], object]], *,
         ``{file name: write(path)}``, called in order.
     overwrite : bool, optional
         Replace files of these names already there.
+    replaces : callable, optional
+        Whether a file name already there is one of an earlier set these files
+        replace (default: a colorps result's): a folder of such files alone is
+        exchanged whole; one holding others is written into, and the earlier
+        set's files not written again are removed.
 
     Returns
     -------
     list of Path
     """
     out = prepare_output_dir(out_dir, overwrite=overwrite, files=list(writers))
-    return _write_folder(out, writers)
+    return _write_folder(out, writers, replaces=replaces)
 
 
-def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path]:
+def _write_folder(out: Path, writers: dict, progress: bool = False,
+                  replaces: Callable[[str], bool] | None = None) -> list[Path]:
     """Write every file into a new folder beside ``out``, then swap it in.
 
     A new ``out`` appears whole, by one rename. An existing one that holds only
@@ -281,7 +288,7 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
     moved. Returns those paths.
     """
     out = out.absolute()
-    inside = out.is_dir() and _in_place(out)
+    inside = out.is_dir() and _in_place(out, replaces or set(_ALL_FILES).__contains__)
     made = [] if inside else _make_parents(out.parent)
     try:
         try:
@@ -296,6 +303,9 @@ def _write_folder(out: Path, writers: dict, progress: bool = False) -> list[Path
             if inside:
                 for name in written:
                     _replace(tmp / name, out / name)
+                for name in os.listdir(out) if replaces else ():  # an earlier set's rest
+                    if replaces(name) and name not in written:
+                        os.remove(out / name)
             elif not out.exists():
                 os.chmod(tmp, file_mode(directory=True))
                 os.rename(tmp, out)
@@ -360,9 +370,9 @@ def _replace(source: Path, target: Path) -> None:
         os.replace(source, target)
 
 
-def _in_place(out: Path) -> bool:
+def _in_place(out: Path, replaced: Callable[[str], bool]) -> bool:
     """Whether an existing results folder must keep its identity (be written into,
-    not exchanged): it holds files other than colorps's results, is a symbolic
+    not exchanged): it holds files other than those ``replaced`` says, is a symbolic
     link or a mount point (a container's volume: nothing can be renamed over it),
     is or holds the current folder, or its parent cannot be written."""
     if out.is_symlink() or os.path.ismount(out):
@@ -372,7 +382,7 @@ def _in_place(out: Path) -> bool:
         return True
     if not os.access(out.parent, os.W_OK | os.X_OK):
         return True
-    return not {p.name for p in out.iterdir()} <= set(_ALL_FILES)
+    return not all(replaced(p.name) for p in out.iterdir())
 
 
 def _make_parents(folder: Path) -> list[Path]:

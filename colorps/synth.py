@@ -26,9 +26,11 @@ from typing import Literal
 
 import numpy as np
 
+from ._config import MIN_LIGHTS, MIN_RADIUS
 from .errors import InputError
 from .finishes import Gloss, gloss_shape, oren_nayar
 from .geometry import sphere_normals
+from .occlusion import shadow_maps, sky_visibility
 
 __all__ = [
     "BRDFS",
@@ -45,13 +47,12 @@ __all__ = [
     "sky_visibility",
     "smiley_surface",
     "sphere_surface",
+    "synthetic_files",
     "write_synthetic",
 ]
 
 #: Names of the reflectance models :func:`render` knows.
 BRDFS = ("lambert", "oren-nayar")
-#: Hemisphere directions sampled for a pixel's sky visibility.
-SKY_SAMPLES = 24
 #: One-bounce interreflection (:func:`render`): cells it is gathered on, at most
 #: (4 times :data:`colorps.interreflection.BOUNCE_CELLS`, finer than the
 #: estimate tested against it).
@@ -216,26 +217,6 @@ def render(surface: SyntheticSurface, lighting: Lighting, *,
     return stack.astype(np.float32)
 
 
-def sky_visibility(surface: SyntheticSurface, samples: int = SKY_SAMPLES) -> np.ndarray:
-    """(H, W) fraction of the sky above each pixel that the relief leaves open:
-    of ``samples`` directions spread evenly over the upper hemisphere (a
-    Fibonacci spiral), weighted by their cosine to the pixel's normal, the part
-    not blocked by the relief (:func:`shadow_maps`). 1 on open flat or convex
-    parts, less in grooves and folds (where the pixel sees the surface itself);
-    0 outside the mask."""
-    k = np.arange(samples) + 0.5
-    z = 1.0 - k / samples  # evenly in z: even in solid angle
-    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
-    rho = np.sqrt(1.0 - z * z)
-    directions = np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
-    sky = Lighting(directions[None], np.ones((1, samples, 1)))
-    blocked = shadow_maps(surface, sky)[0]  # (samples, H, W)
-    cosine = np.maximum(np.einsum("hwc,sc->shw", surface.normals, directions), 0.0)
-    total = cosine.sum(axis=0)
-    open_sky = np.where(blocked, 0.0, cosine).sum(axis=0) / np.maximum(total, 1e-12)
-    return np.where(surface.mask, np.clip(open_sky, 0.0, 1.0), 0.0)
-
-
 def _bounced(surface: SyntheticSurface, direct: np.ndarray) -> np.ndarray:
     """The one-bounce term of :func:`render` (strength 1), (m, H, W, c): the
     direct light every other visible patch of the relief reflects, gathered
@@ -246,47 +227,6 @@ def _bounced(surface: SyntheticSurface, direct: np.ndarray) -> np.ndarray:
     height = cell_heights(grid, surface.height, surface.mask)
     bounced = gather(grid, height, direct, surface.mask, surface.albedo)
     return bounced_light(bounced, surface.albedo, surface.mask.shape).astype(direct.dtype)
-
-
-def shadow_maps(surface: SyntheticSurface, lighting: Lighting) -> np.ndarray:
-    """Where the relief casts a shadow: (m, L, H, W) bool, per image and light.
-
-    A pixel is in the cast shadow of a light when the height field rises above
-    the straight ray from the pixel towards the light (marched one pixel at a
-    time, heights in pixels, orthographic). Attached shadows (the light behind
-    the surface) are not counted: the shading already makes them 0.
-    """
-    from scipy.ndimage import map_coordinates
-
-    h, w = surface.mask.shape
-    z = np.where(surface.mask, surface.height, -np.inf)
-    ys, xs = np.nonzero(surface.mask)
-    z0 = z[ys, xs]
-    top = float(np.max(z0)) if z0.size else 0.0
-    m, n_lights = lighting.directions.shape[:2]
-    out = np.zeros((m, n_lights, h, w), dtype=bool)
-    filled = np.where(surface.mask, surface.height, np.nanmin(surface.height)
-                      if surface.mask.any() else 0.0)
-    for k in range(m):
-        for index, light in enumerate(lighting.directions[k]):
-            across = np.hypot(light[0], light[1])
-            if across < 1e-9 or light[2] <= 0:
-                continue
-            ux, uy = light[0] / across, -light[1] / across  # image rows go down
-            rise = light[2] / across  # height gained per pixel travelled
-            blocked = np.zeros(ys.size, dtype=bool)
-            for t in range(1, h + w):
-                ray = z0 + t * rise
-                live = ~blocked & (ray <= top)
-                if not live.any():
-                    break
-                px, py = xs + t * ux, ys + t * uy
-                inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
-                ground = map_coordinates(filled, [py, px], order=1, mode="nearest")
-                blocked |= live & inside & (ground > ray + 1e-9)
-            facing = surface.normals[ys, xs] @ light > 0
-            out[k, index, ys, xs] = blocked & facing
-    return out
 
 
 def highlight_maps(surface: SyntheticSurface, lighting: Lighting, *, gloss: float | Gloss,
@@ -437,6 +377,12 @@ def mixed_lights(m: int, theta_deg: float = 45.0) -> Lighting:
 
 
 #: Light layouts of :func:`write_synthetic` (``colorps synth --lights``).
+#: Smallest scene side (pixels) ``colorps synth`` renders: the smiley's
+#: features take a few pixels each.
+MIN_SYNTH_SIZE = 16
+#: Memory (bytes) rendering takes per value of the scene's and gauge's stacks
+#: (float64 images and their temporaries: 16 measured at 64-1024 px, 8 lights).
+SYNTH_BYTES_PER_VALUE = 16
 LIGHT_LAYOUTS = ("white", "colour", "mixed", "one-sided")
 #: File formats of :func:`write_synthetic`: linear half-float EXR, or 8-bit sRGB PNG.
 FILE_FORMATS = ("exr", "png8")
@@ -483,6 +429,32 @@ class SyntheticCapture:
     gloss: float = 0.0
     file_format: Literal["exr", "png8"] = "exr"
 
+    def __post_init__(self) -> None:
+        for name, bad, expected in (
+                ("size", not self.size >= MIN_SYNTH_SIZE, f"at least {MIN_SYNTH_SIZE} px"),
+                ("images", not self.images >= MIN_LIGHTS, f"at least {MIN_LIGHTS} (one light "
+                                                           "each; fewer fix no normal)"),
+                ("theta", not 0.0 <= self.theta < 90.0, "0 to under 90 degrees"),
+                ("noise", not self.noise >= 0.0, "a sigma of at least 0"),
+                ("gauge_radius", not self.gauge_radius >= MIN_RADIUS,
+                 f"at least {MIN_RADIUS:g} px"),
+                ("relief", not self.relief >= 0.0, "at least 0"),
+                ("gloss", not self.gloss >= 0.0, "at least 0")):
+            if bad:
+                raise InputError(f"{name}: expected {expected}, got {getattr(self, name)!r}")
+
+    def bytes_needed(self) -> int:
+        """About how much memory rendering it takes (SYNTH_BYTES_PER_VALUE a value of
+        the scene's and the gauge's stacks)."""
+        gauge_side = _gauge_side(self.gauge_radius)
+        return int(SYNTH_BYTES_PER_VALUE * 3 * self.images *
+                   (self.size ** 2 + gauge_side ** 2))
+
+
+def _gauge_side(gauge_radius: float) -> int:
+    """Side (pixels) of the gauge's images: its sphere and 5 px around."""
+    return int(np.ceil(2 * gauge_radius + 10))
+
 
 def write_synthetic(out_dir, **settings) -> dict:
     """Render a smiley scene and a sphere gauge to image stacks with ground truth.
@@ -496,7 +468,10 @@ def write_synthetic(out_dir, **settings) -> dict:
     NaN outside), ``truth_mask.png``, ``truth_shadows.png`` (with
     ``cast_shadows``: bit i set where light i is blocked, as 8-bit codes for up
     to 8 images) and ``sample.json`` (every parameter, the light directions and
-    colours, and the gauge sphere geometry) into ``out_dir``.
+    colours, and the gauge sphere geometry) into ``out_dir`` (made when
+    missing; files of those names replaced). ``colorps synth`` writes the
+    same files all together or not at all
+    (:func:`colorps.sample.write_synthetic_folder`).
 
     Lights: "white" ring lights at ``theta`` from the view axis; "colour" one
     coloured light per image; "mixed" two colours per image; "one-sided" white
@@ -508,8 +483,20 @@ def write_synthetic(out_dir, **settings) -> dict:
     dict
         The content of sample.json.
     """
-    import json
     from pathlib import Path
+
+    files, info = synthetic_files(**settings)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, write in files.items():
+        write(out / name)
+    return info
+
+
+def synthetic_files(**settings) -> tuple[dict, dict]:
+    """The files :func:`write_synthetic` writes, rendered: ``{name: write(path)}``,
+    and the content of sample.json."""
+    import json
 
     from .io import srgb_encode, write_image
 
@@ -537,32 +524,34 @@ def write_synthetic(out_dir, **settings) -> dict:
         raise InputError(f"lights: expected one of {LIGHT_LAYOUTS}, got {lights!r}")
     if file_format not in FILE_FORMATS:
         raise InputError(f"file_format: expected one of {FILE_FORMATS}, got {file_format!r}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     scene = smiley_surface(size, relief=relief)
-    gsize = int(np.ceil(2 * gauge_radius + 10))
+    gsize = _gauge_side(gauge_radius)
     gauge = sphere_surface(gsize, gauge_radius)
     scene_stack = render(scene, lighting, brdf=brdf, noise=noise, seed=seed,
                          cast_shadows=cast_shadows, gloss=gloss)
     gauge_stack = render(gauge, lighting, brdf=brdf, noise=noise, seed=seed + 1)
+    files = {}
     for k in range(images):
         for name, stack in (("scene", scene_stack), ("gauge", gauge_stack)):
             if file_format == "exr":
-                write_image(out / f"{name}_{k:02d}.exr", stack[k], dtype="half",
-                            channel_names=["R", "G", "B"])
+                files[f"{name}_{k:02d}.exr"] = lambda path, image=stack[k]: write_image(
+                    path, image, dtype="half", channel_names=["R", "G", "B"])
             else:
-                write_image(out / f"{name}_{k:02d}.png", srgb_encode(stack[k]), dtype="uint8")
+                files[f"{name}_{k:02d}.png"] = lambda path, image=stack[k]: write_image(
+                    path, srgb_encode(image), dtype="uint8")
     normals = np.where(scene.mask[..., None], scene.normals, np.nan)
-    write_image(out / "truth_normal.exr", normals, channel_names=["X", "Y", "Z"])
-    write_image(out / "truth_albedo.exr", np.where(scene.mask[..., None], scene.albedo, np.nan),
-                channel_names=["R", "G", "B"])
-    write_image(out / "truth_mask.png", scene.mask.astype(np.float32), dtype="uint8")
-    write_image(out / "truth_height.exr", scene.height, channel_names=["Z"])
-    write_image(out / "mask.png", scene.mask.astype(np.float32), dtype="uint8")
+    albedo = np.where(scene.mask[..., None], scene.albedo, np.nan)
+    mask = scene.mask.astype(np.float32)
+    files.update({
+        "truth_normal.exr": lambda path: write_image(path, normals, channel_names=["X", "Y", "Z"]),
+        "truth_albedo.exr": lambda path: write_image(path, albedo, channel_names=["R", "G", "B"]),
+        "truth_mask.png": lambda path: write_image(path, mask, dtype="uint8"),
+        "truth_height.exr": lambda path: write_image(path, scene.height, channel_names=["Z"]),
+        "mask.png": lambda path: write_image(path, mask, dtype="uint8")})
     if cast_shadows and images <= 8:
         blocked = shadow_maps(scene, lighting).any(axis=1)
         code = (blocked * (1 << np.arange(images))[:, None, None]).sum(axis=0)
-        write_image(out / "truth_shadows.png", code / 255.0, dtype="uint8")
+        files["truth_shadows.png"] = lambda path: write_image(path, code / 255.0, dtype="uint8")
     centre = (gsize - 1) / 2.0
     info = dict(
         made_by="colorps synth", size=size, images=images, theta_deg=theta, lights=lights,
@@ -571,5 +560,5 @@ def write_synthetic(out_dir, **settings) -> dict:
         gauge_sphere=dict(cx=centre, cy=centre, r=gauge_radius),
         light_directions=lighting.directions.tolist(), light_colours=lighting.colours.tolist(),
     )
-    (out / "sample.json").write_text(json.dumps(info, indent=1))
-    return info
+    files["sample.json"] = lambda path: path.write_text(json.dumps(info, indent=1))
+    return files, info

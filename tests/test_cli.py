@@ -147,6 +147,46 @@ def test_synth_and_demo(tmp_path, capsys):
     assert main(["demo", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "d")]) == 1
 
 
+@pytest.mark.parametrize("option, value, message", [
+    ("--images", "2", "images: expected at least 3"), ("--theta", "95", "theta: expected 0"),
+    ("--noise", "-0.1", "noise: expected a sigma"), ("--size", "8", "size: expected at least"),
+    ("--gauge-radius", "4", "gauge_radius: expected at least")])
+def test_synth_refuses_what_it_cannot_render(tmp_path, capsys, option, value, message):
+    assert main(["synth", "--out", str(tmp_path / "data"), option, value]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("colorps: error:") and message in err and "\n" not in err
+    assert not (tmp_path / "data").exists()
+
+
+def test_synth_needs_the_memory_it_renders_in(tmp_path, capsys, monkeypatch):
+    """A gauge too large for the memory available is refused before any rendering
+    (a 5000 px radius had the process killed), naming both sizes."""
+    from colorps import memory
+
+    monkeypatch.setattr(memory, "available_memory_bytes", lambda: 2 ** 30)
+    assert main(["synth", "--out", str(tmp_path / "data"), "--gauge-radius", "1000"]) == 1
+    assert "need about 1.5 GiB to render; 1.0 GiB is available" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()
+
+
+def test_synth_replaces_an_earlier_capture_only_when_told_and_whole(tmp_path, capsys):
+    """An earlier capture is kept without --overwrite; with it, a capture of fewer
+    images leaves none of the earlier images behind (a glob would mix them in),
+    and a user's own files beside it stay."""
+    data = tmp_path / "data"
+    small = ["--size", "32", "--gauge-radius", "12"]
+    assert main(["synth", "--out", str(data), *small, "--images", "6"]) == 0
+    (data / "notes.txt").write_text("mine")
+    before = {p.name: p.read_bytes() for p in data.iterdir()}
+    assert main(["synth", "--out", str(data), *small, "--images", "3"]) == 1
+    assert "use --overwrite" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in data.iterdir()} == before
+    assert main(["synth", "--out", str(data), *small, "--images", "3", "--overwrite"]) == 0
+    assert sorted(p.name for p in data.glob("scene_*")) == [f"scene_{k:02d}.exr" for k in range(3)]
+    assert len(list(data.glob("gauge_*"))) == 3 and (data / "notes.txt").read_text() == "mine"
+    assert json.loads((data / "sample.json").read_text())["images"] == 3
+
+
 def test_console_script_version_and_help():
     version = subprocess.run([sys.executable, "-m", "colorps.cli", "--version"],
                              capture_output=True, text=True)

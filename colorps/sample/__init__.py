@@ -1,4 +1,5 @@
-"""The bundled sample capture with ground truth, and ``colorps demo`` which reads it.
+"""The bundled sample capture with ground truth, ``colorps demo`` which reads it, and
+``colorps synth``'s folders of captures like it.
 
 The files of this folder (see its README.md) are installed with the package,
 so the demo runs from any install and any working folder.
@@ -6,7 +7,9 @@ so the demo runs from any install and any working folder.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -17,7 +20,7 @@ from ..errors import InputError
 from ..geometry import angular_error
 from ..options import Options
 
-__all__ = ["DemoReport", "run_demo", "sample_folder"]
+__all__ = ["DemoReport", "run_demo", "sample_folder", "write_synthetic_folder"]
 
 
 def sample_folder() -> Path:
@@ -126,3 +129,54 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
         albedo_error=tuple(float(np.median(rel[:, k])) for k in range(rel.shape[1])),
         height_rms_px=rms, relief_px=relief)
     return result, report
+
+
+def write_synthetic_folder(out, capture, overwrite: bool = False) -> dict:
+    """``colorps synth``: render ``capture`` (a :class:`colorps.synth.SyntheticCapture`)
+    and write its files (:func:`colorps.synth.write_synthetic`) into ``out``, all
+    together or not at all (:func:`colorps.outputs.write_folder`).
+
+    Raises
+    ------
+    OutputError
+        ``out`` is not a folder to write, or already holds such files and not
+        ``overwrite``, before anything is rendered.
+    InputError
+        Rendering it would need more memory than is available.
+
+    Returns
+    -------
+    dict
+        The content of its sample.json.
+    """
+    from ..memory import available_memory_bytes
+    from ..outputs import prepare_output_dir, write_folder
+    from ..synth import synthetic_files
+
+    prepare_output_dir(out, overwrite=overwrite, files=["sample.json", "mask.png"])
+    needed, available = capture.bytes_needed(), available_memory_bytes()
+    if needed > available:
+        raise InputError(f"synth: a {capture.size} px scene and a gauge of radius "
+                         f"{capture.gauge_radius:g} px under {capture.images} lights need "
+                         f"about {needed / 2 ** 30:.1f} GiB to render; "
+                         f"{available / 2 ** 30:.1f} GiB is available")
+    files, info = synthetic_files(**dataclasses.asdict(capture))
+    write_folder(out, files, overwrite=overwrite, replaces=_earlier_capture(out))
+    return info
+
+
+#: The files of a folder ``colorps synth`` wrote.
+_CAPTURE_FILE = re.compile(r"(scene|gauge)_\d+\.(exr|png)|truth_\w+\.(exr|png)|mask\.png|"
+                           r"sample\.json")
+
+
+def _earlier_capture(out):
+    """``replaces(name)`` of :func:`colorps.outputs.write_folder` for a folder holding
+    an earlier ``colorps synth`` capture (its sample.json says so): its files, all
+    of them replaced (a capture of more images leaves none behind); else None."""
+    try:
+        made = json.loads((Path(out) / "sample.json").read_text()).get("made_by")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return (lambda name: _CAPTURE_FILE.fullmatch(name) is not None) \
+        if made == "colorps synth" else None
