@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from colorps import Gauge, angular_error, interreflection, reconstruct, synth
-from colorps.bounce import cell_grid, cell_heights, gather
+from colorps.bounce import at_pixels, cell_grid, cell_heights, gather
 from colorps.cli import main
 from colorps.interreflection import (
     BETTER_BY,
@@ -99,6 +99,24 @@ def test_cell_means_are_the_means_of_the_pixels_in_each_block():
             assert grid.count[cy, cx] == inside.sum()
             expected = values[block][inside].mean(axis=0) if inside.any() else 0.0
             np.testing.assert_allclose(means[cy, cx], expected, rtol=1e-6)
+
+
+def test_a_cell_map_at_pixels_interpolates_between_valid_cell_centres():
+    """bounce.at_pixels: a cell's value at its centre pixel, linear between
+    centres, the nearest beyond the outer ones, and an invalid cell left out
+    (its valid neighbour's value, not a zero mixed in)."""
+    valid = np.ones((3, 4), dtype=bool)
+    valid[2, 3] = False
+    cells = np.arange(12, dtype=np.float64).reshape(3, 4) + 1.0
+    cells[2, 3] = 1e6  # (invalid: never seen)
+    pixels = at_pixels(SimpleNamespace(step=3, valid=valid), cells, (9, 12))
+    # Cell (r, c) is centred at pixel (3 r + 1, 3 c + 1).
+    assert pixels[1, 1] == pytest.approx(cells[0, 0])
+    assert pixels[4, 7] == pytest.approx(cells[1, 2])
+    assert pixels[2, 1] == pytest.approx(2 / 3 * cells[0, 0] + 1 / 3 * cells[1, 0])
+    assert pixels[0, 0] == pytest.approx(cells[0, 0])
+    assert pixels[6, 11] == pytest.approx(cells[1, 3])  # (between it and the invalid one)
+    assert np.all(pixels < 100)
 
 
 def test_a_convex_object_sees_nothing_of_itself_and_is_left_alone():
