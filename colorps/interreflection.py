@@ -255,7 +255,8 @@ def left_in(result, why: str, advice: str) -> dict:
     if share >= MIN_LIT_CELLS:
         warnings.warn(f"{share:.0%} of the object sees itself, but {why} leaves the light it "
                       "bounces onto itself in: normals in its folds may lean towards the walls "
-                      f"that light them{advice}", InterreflectionWarning, stacklevel=3)
+                      f"that light them, and uncertainty.exr counts how far{advice}",
+                      InterreflectionWarning, stacklevel=3)
     return dict(skipped=why, sees_itself=share)
 
 
