@@ -483,8 +483,9 @@ def _run(args, received: list[int]) -> int:
                       f"from a light subset, {poor} poor matches flagged; table "
                       f"{s.table_size}, grid N={s.grid_n}, median residual "
                       f"{median:.2f}, {s.residual_median_noise_units or 0.0:.2f} in noise "
-                      f"units before the model scale {s.model_scale:.2f}; "
-                      f"{s.seconds.run:.2f} s in all); results in {args.out}/")
+                      f"units before the model scale {s.model_scale:.2f}; 68 % radius median "
+                      f"{s.uncertainty_median or 0.0:.2f} deg; {s.seconds.run:.2f} s in all); "
+                      f"results in {args.out}/")
         elif args.command == "batch":
             return _batch(args)
         elif args.command == "integrate":

@@ -250,8 +250,8 @@ def test_first_compile_of_a_colorps_kernel_is_announced_once(capsys):
 
 def test_summary_gives_the_residual_before_the_run_scale(sample, tmp_path, capsys):
     """The run's median residual is about 1 by construction when a scale is fitted;
-    the summary also gives it in noise units (times the model scale), as in
-    report.json."""
+    the summary also gives it in noise units (times the model scale), and the
+    median 68 % radius, as in report.json."""
     out = tmp_path / "out"
     args = [a for a in args_for(sample, out, "--no-height") if a != "--quiet"]
     assert main(args) == 0
@@ -260,6 +260,7 @@ def test_summary_gives_the_residual_before_the_run_scale(sample, tmp_path, capsy
     absolute = stats["residual_median"] * stats["model_scale"]
     assert f"{absolute:.2f} in noise units before the model scale " \
            f"{stats['model_scale']:.2f}" in line
+    assert f"68 % radius median {stats['uncertainty_median']:.2f} deg" in line
 
 
 def test_report_times_every_phase_and_writing_shows_progress(sample, tmp_path, capsys):
