@@ -186,7 +186,8 @@ def highlight_candidates(image, sphere: tuple[float, float, float], *,
     if not (peak > 0 and contrast >= MIN_CONTRAST):
         raise InputError(f"{name}: no highlight on the mirror sphere (peak {peak:.3g} is "
                          f"{contrast:.2g}x the sphere's median; at least {MIN_CONTRAST:g}x "
-                         "needed): is the light in front of the sphere, and the sphere right?")
+                         "needed): is the light in front of the sphere, and the sphere right? "
+                         "A matte sphere (a gauge) has no highlight: pass --matte for it")
     labels = measure.label(disk & (values >= level + RIVAL_LEVEL * (peak - level)),
                            connectivity=2)
     peaks = np.zeros(labels.max() + 1)
