@@ -78,8 +78,8 @@ def _albedo(text: str):
         values = [float(v) for v in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected A or R,G,B, got {text!r}") from None
-    if any(not np.isfinite(v) or v <= 0 for v in values):
-        raise argparse.ArgumentTypeError(f"albedo values must be > 0, got {text!r}")
+    if any(not np.isfinite(v) or not 0 < v <= 1 for v in values):
+        raise argparse.ArgumentTypeError(f"expected reflectances in (0, 1], got {text!r}")
     return values[0] if len(values) == 1 else values
 
 

@@ -69,15 +69,16 @@ MIN_COVER = 0.35
 
 
 def parse_albedo(albedo, bands: int) -> np.ndarray:
-    """Gauge albedo as one positive value per band (a scalar applies to all)."""
+    """Gauge albedo as one reflectance in (0, 1] per band (a scalar applies to all)."""
     try:
         values = np.atleast_1d(np.asarray(albedo, dtype=np.float64))
     except (TypeError, ValueError):
         raise GaugeError(f"gauge albedo: expected a number or one per band, got {albedo!r}") from None
     if values.ndim != 1 or values.size not in (1, bands):
         raise GaugeError(f"gauge albedo: expected 1 or {bands} values, got {values.size}")
-    if not np.all(np.isfinite(values)) or np.any(values <= 0):
-        raise GaugeError(f"gauge albedo: values must be finite and > 0, got {values.tolist()}")
+    if not np.all(np.isfinite(values)) or np.any(values <= 0) or np.any(values > 1):
+        raise GaugeError(f"gauge albedo: values are reflectances in (0, 1] (80 % is 0.8), "
+                         f"got {values.tolist()}")
     return np.broadcast_to(values, (bands,)).copy()
 
 

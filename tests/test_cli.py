@@ -91,7 +91,7 @@ def test_bad_input_exits_nonzero_with_one_line(sample, tmp_path, capsys, mutate,
 
 @pytest.mark.parametrize("option, value", [
     ("--sphere", "1,2"), ("--sphere", "a,b,c"), ("--gauge-albedo", "0"),
-    ("--gauge-albedo", "x"), ("--threads", "0"), ("--grid-n", "-2"), ("--mode", "rgb"),
+    ("--gauge-albedo", "x"), ("--gauge-albedo", "80"), ("--threads", "0"), ("--grid-n", "-2"), ("--mode", "rgb"),
 ])
 def test_malformed_options_are_usage_errors(sample, tmp_path, capsys, option, value):
     args = args_for(sample, tmp_path / "o")

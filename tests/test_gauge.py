@@ -96,7 +96,7 @@ def test_gauge_from_any_normal_map():
 def test_parse_albedo():
     np.testing.assert_array_equal(parse_albedo(0.8, 3), [0.8, 0.8, 0.8])
     np.testing.assert_array_equal(parse_albedo([0.1, 0.2, 0.3], 3), [0.1, 0.2, 0.3])
-    for bad in (0, -1, [1, 2], np.nan, "x"):
+    for bad in (0, -1, [1, 2], np.nan, "x", 80, [0.5, 0.5, 1.2]):  # (80: a percentage)
         with pytest.raises(GaugeError, match="gauge albedo"):
             parse_albedo(bad, 3)
 
