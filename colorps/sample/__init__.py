@@ -13,12 +13,16 @@ import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import InputError
 from ..geometry import angular_error
 from ..options import Options
+
+if TYPE_CHECKING:
+    from ..synth import SyntheticCapture
 
 __all__ = ["DemoReport", "run_demo", "sample_folder", "write_synthetic_folder"]
 
@@ -131,7 +135,8 @@ def run_demo(out, data=None, mode: str = "colour", overwrite: bool = False, *,
     return result, report
 
 
-def write_synthetic_folder(out, capture, overwrite: bool = False) -> dict:
+def write_synthetic_folder(out: str | Path, capture: SyntheticCapture,
+                           overwrite: bool = False) -> dict:
     """``colorps synth``: render ``capture`` (a :class:`colorps.synth.SyntheticCapture`)
     and write its files (:func:`colorps.synth.write_synthetic`) into ``out``, all
     together or not at all (:func:`colorps.outputs.write_folder`).
