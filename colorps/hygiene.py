@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import ExposureWarning, InputError
+from .errors import ExposureWarning, InputError, PairingWarning
 
 if TYPE_CHECKING:
     from .io import ImageInfo
@@ -57,10 +57,13 @@ def check_names(paths: Sequence[Path], name: str) -> None:
 
 
 def check_contents(stack: np.ndarray, paths: Sequence[Path], name: str) -> None:
-    """Refuse a stack holding an image of 0 and one other value only (a mask, a matte)."""
+    """Refuse a stack holding an image of 0 and one other value only (a mask, a
+    matte); warn (PairingWarning) of two images holding the same pixels, which
+    two lights cannot give (a file copied over another)."""
     m = stack.shape[0]
     if m < 2:
         return
+    first_with = {}  # (a sample of each image's pixels: its first image)
     for k in range(m):
         image = stack[k].reshape(-1)
         step = max(1, image.size // CONTENT_SAMPLE)
@@ -71,6 +74,12 @@ def check_contents(stack: np.ndarray, paths: Sequence[Path], name: str) -> None:
                 f"2 values ({values[0]:g} and {values[1]:g}), like a "
                 f"mask, not a photograph; give the {name} photographs only, and the mask "
                 "with --mask")
+        j = first_with.setdefault(image[::step].tobytes(), k)
+        if j != k and np.array_equal(stack[j], stack[k]):
+            warnings.warn(f"{paths[k]}: image {k + 1} of the {m} {name} images holds the "
+                          f"same pixels as image {j + 1}, {paths[j]}, which two lights "
+                          "cannot give: was one file copied over another?", PairingWarning,
+                          stacklevel=3)
 
 
 def relative_exposures(scene: Sequence[ImageInfo],

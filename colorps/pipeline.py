@@ -299,7 +299,8 @@ def _read_scene(stacks: _Stacks, options: Options, plan: TilePlan, progress: boo
     if plan.rows is None:
         scene, names = read_stack(stacks.scene_paths, options.encoding, name="scene",
                                   progress=progress, warn_lossy=not again)
-        check_contents(scene, stacks.scene_paths, "scene")
+        if not again:  # (checked, and warned of, on the first read)
+            check_contents(scene, stacks.scene_paths, "scene")
         return scene, names
     _m, h, _w, _c = stacks.shape
     if progress:  # a tiled run is slower: say why it is tiled

@@ -542,6 +542,25 @@ def test_a_mask_in_the_stack_is_named_with_its_position(capture, tmp_path, capsy
     assert not out.exists()
 
 
+@pytest.mark.parametrize("stack", ["scene", "gauge"])
+def test_a_file_copied_over_another_is_warned_about_once(capture, tmp_path, capsys, stack):
+    """Two images of a stack holding the same pixels (under two lights they cannot):
+    one warning naming both files and their positions; the run still finishes."""
+    folder, _ = capture
+    for kind in ("scene", "gauge"):
+        for k in range(4):
+            shutil.copy(folder / f"{kind}_{k:02d}.exr", tmp_path / f"{kind}_{k:02d}.exr")
+    shutil.copy(folder / f"{stack}_01.exr", tmp_path / f"{stack}_02.exr")
+    assert main(args_for(capture, tmp_path / "out", str(tmp_path / "scene_*.exr"),
+                         str(tmp_path / "gauge_*.exr"), "--no-height")) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "same pixels" in line]
+    assert len(said) == 1, said
+    assert f"{stack}_02.exr: image 3 of the 4 {stack} images holds the same pixels as " \
+           f"image 2, {tmp_path / f'{stack}_01.exr'}" in said[0]
+    assert main(args_for(capture, tmp_path / "clean", None, None, "--no-height")) == 0
+    assert "same pixels" not in capsys.readouterr().err
+
+
 def test_swapped_stacks_and_the_wrong_encoding_are_warned_about(capture, tmp_path, capsys):
     """The gauge's shading is fitted as a lit sphere at its place: scene and gauge
     swapped fit badly; 8-bit files decoded the wrong way fit far better the other
