@@ -272,12 +272,14 @@ def _encoding_verdict(fit, stack, fitted: float, encoding: str, top_code: int | 
         return record  # (floating-point files are linear unless told otherwise)
     import colour
 
+    from .io import srgb_decode
+
     read_as_srgb = encoding in ("auto", "srgb")
-    if top_code is None:  # floating-point files told to be sRGB: as stored
+    if top_code is None:  # floating-point files told to be sRGB: as stored (unclipped)
         other = colour.cctf_encoding(np.maximum(np.asarray(stack, np.float64), 0.0), "sRGB")
     else:
         other = linear_codes(stack, top_code) if read_as_srgb else \
-            colour.cctf_decoding(np.clip(stack, 0, 1), "sRGB")
+            srgb_decode(np.clip(stack, 0, 1))
     other_fit = fit(other)
     record["other_encoding_residual"] = other_fit
     if not other_fit < ENCODING_RATIO * fitted:
