@@ -14,8 +14,8 @@ import numpy as np
 
 from . import __version__
 from .camera import read_camera
-from .errors import ColorPSError, InputError
-from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS
+from .errors import ColorPSError, GaugeError, InputError
+from .gauge import DEFAULT_ALBEDO, DEFAULT_VIRTUAL_RADIUS, parse_albedo
 from .heights import integrate_file
 from .inputs import CaptureFiles
 from .light_files import calibrate_lights_files
@@ -75,12 +75,12 @@ def _camera(text: str):
 
 def _albedo(text: str):
     try:
-        values = [float(v) for v in text.split(",")]
+        values = parse_albedo([float(v) for v in text.split(",")], text.count(",") + 1)
+    except GaugeError as error:  # (what parse_albedo refuses)
+        raise argparse.ArgumentTypeError(str(error)) from None
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected A or R,G,B, got {text!r}") from None
-    if any(not np.isfinite(v) or not 0 < v <= 1 for v in values):
-        raise argparse.ArgumentTypeError(f"expected reflectances in (0, 1], got {text!r}")
-    return values[0] if len(values) == 1 else values
+    return float(values[0]) if len(values) == 1 else values.tolist()
 
 
 def _number(kind, smallest, what: str):
