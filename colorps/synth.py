@@ -376,13 +376,13 @@ def mixed_lights(m: int, theta_deg: float = 45.0) -> Lighting:
     return Lighting(directions, colours)
 
 
-#: Light layouts of :func:`write_synthetic` (``colorps synth --lights``).
 #: Smallest scene side (pixels) ``colorps synth`` renders: the smiley's
 #: features take a few pixels each.
 MIN_SYNTH_SIZE = 16
 #: Memory (bytes) rendering takes per value of the scene's and gauge's stacks
 #: (float64 images and their temporaries: 16 measured at 64-1024 px, 8 lights).
 SYNTH_BYTES_PER_VALUE = 16
+#: Light layouts of :func:`write_synthetic` (``colorps synth --lights``).
 LIGHT_LAYOUTS = ("white", "colour", "mixed", "one-sided")
 #: File formats of :func:`write_synthetic`: linear half-float EXR, or 8-bit sRGB PNG.
 FILE_FORMATS = ("exr", "png8")
@@ -442,6 +442,11 @@ class SyntheticCapture:
                 ("gloss", not self.gloss >= 0.0, "at least 0")):
             if bad:
                 raise InputError(f"{name}: expected {expected}, got {getattr(self, name)!r}")
+        if self.lights not in LIGHT_LAYOUTS:
+            raise InputError(f"lights: expected one of {LIGHT_LAYOUTS}, got {self.lights!r}")
+        if self.file_format not in FILE_FORMATS:
+            raise InputError(f"file_format: expected one of {FILE_FORMATS}, "
+                             f"got {self.file_format!r}")
 
     def bytes_needed(self) -> int:
         """About how much memory rendering it takes (SYNTH_BYTES_PER_VALUE a value of
@@ -485,7 +490,11 @@ def write_synthetic(out_dir, **settings) -> dict:
     """
     from pathlib import Path
 
-    files, info = synthetic_files(**settings)
+    try:
+        capture = SyntheticCapture(**settings)
+    except TypeError as error:
+        raise InputError(f"write_synthetic: {error}") from None
+    files, info = synthetic_files(capture)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for name, write in files.items():
@@ -493,17 +502,13 @@ def write_synthetic(out_dir, **settings) -> dict:
     return info
 
 
-def synthetic_files(**settings) -> tuple[dict, dict]:
-    """The files :func:`write_synthetic` writes, rendered: ``{name: write(path)}``,
-    and the content of sample.json."""
+def synthetic_files(capture: SyntheticCapture) -> tuple[dict, dict]:
+    """The files :func:`write_synthetic` writes of ``capture``, rendered:
+    ``{name: write(path)}``, and the content of sample.json."""
     import json
 
     from .io import srgb_encode, write_image
 
-    try:
-        capture = SyntheticCapture(**settings)
-    except TypeError as error:
-        raise InputError(f"write_synthetic: {error}") from None
     (size, images, theta, lights, brdf, noise, gauge_radius, seed, relief, cast_shadows, gloss,
      file_format) = astuple(capture)
     if lights == "white":
@@ -514,16 +519,12 @@ def synthetic_files(**settings) -> tuple[dict, dict]:
         lighting = ring_lights(images, theta, 0.1 + 0.9 * hue)
     elif lights == "mixed":
         lighting = mixed_lights(images, theta)
-    elif lights == "one-sided":
+    else:  # "one-sided"
         phi = np.linspace(0.0, np.pi, images)
         t = np.deg2rad(theta)
         dirs = np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi),
                          np.full(images, np.cos(t))], axis=1)
         lighting = Lighting(dirs[:, None, :], np.ones((images, 1, 3)))
-    else:
-        raise InputError(f"lights: expected one of {LIGHT_LAYOUTS}, got {lights!r}")
-    if file_format not in FILE_FORMATS:
-        raise InputError(f"file_format: expected one of {FILE_FORMATS}, got {file_format!r}")
     scene = smiley_surface(size, relief=relief)
     gsize = _gauge_side(gauge_radius)
     gauge = sphere_surface(gsize, gauge_radius)

@@ -7,7 +7,6 @@ so the demo runs from any install and any working folder.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 from dataclasses import dataclass
@@ -165,7 +164,7 @@ def write_synthetic_folder(out: str | Path, capture: SyntheticCapture,
                          f"{capture.gauge_radius:g} px under {capture.images} lights need "
                          f"about {needed / 2 ** 30:.1f} GiB to render; "
                          f"{available / 2 ** 30:.1f} GiB is available")
-    files, info = synthetic_files(**dataclasses.asdict(capture))
+    files, info = synthetic_files(capture)
     write_folder(out, files, overwrite=overwrite, replaces=_earlier_capture(out))
     return info
 
