@@ -7,7 +7,8 @@ then runs ``colorps reconstruct`` on it with default options, in this process,
 with the pipeline's steps wrapped by timers, while a thread samples the
 resident memory every 20 ms. It prints a markdown table: each phase's start
 and duration (wall seconds from the start of the run) and the peak resident
-memory while it ran. The height integration runs in a thread beside the
+memory while it ran, and how many cores it kept busy (process CPU seconds
+over wall seconds, from the same samples). The height integration runs in a thread beside the
 writing of the maps, so those two rows overlap in time.
 
 Start-up (the interpreter and ``import colorps.cli``) is measured apart, in a
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import subprocess
 import sys
 import tempfile
@@ -55,13 +57,15 @@ class Recorder:
     def __init__(self) -> None:
         self.t0 = time.perf_counter()
         self.spans: list[list] = []  # [label, start, stop]
-        self.samples: list[tuple[float, float]] = []
+        self.samples: list[tuple[float, float, float]] = []  # (wall s, MiB, CPU s)
         self._stop = threading.Event()
         threading.Thread(target=self._sample, daemon=True).start()
 
     def _sample(self) -> None:
         while not self._stop.is_set():
-            self.samples.append((time.perf_counter() - self.t0, resident_mib()))
+            cpu = os.times()
+            self.samples.append((time.perf_counter() - self.t0, resident_mib(),
+                                 cpu.user + cpu.system))
             time.sleep(SAMPLE_SECONDS)
 
     def wrap(self, module, name: str, label: str) -> None:
@@ -81,9 +85,17 @@ class Recorder:
     def peak(self, start: float, stop: float) -> float:
         """The largest sample within the phase, or one sampling period around it
         (a phase shorter than the period falls between samples)."""
-        inside = [mib for t, mib in self.samples
+        inside = [mib for t, mib, _ in self.samples
                   if start - SAMPLE_SECONDS <= t <= stop + SAMPLE_SECONDS]
         return max(inside) if inside else float("nan")
+
+    def cores(self, start: float, stop: float) -> float:
+        """Cores kept busy within the phase: the process's CPU seconds over the
+        wall seconds between the samples nearest its start and stop."""
+        first = min(self.samples, key=lambda sample: abs(sample[0] - start))
+        last = min(self.samples, key=lambda sample: abs(sample[0] - stop))
+        return (last[2] - first[2]) / (last[0] - first[0]) if last[0] > first[0] \
+            else float("nan")
 
     def stop(self) -> None:
         self._stop.set()
@@ -122,12 +134,13 @@ def main(argv=None) -> None:
         raise SystemExit(f"colorps reconstruct failed (exit code {code})")
     print(f"\n{args.size} x {args.size}, 8 RGB images, 2 cores: start-up "
           f"(python -c 'import colorps.cli') {start_up:.2f} s, then the run {total:.2f} s, "
-          f"peak {max(m for _, m in recorder.samples):.0f} MiB resident\n")
-    print("| phase | start s | seconds | peak MiB |")
-    print("|---|---|---|---|")
+          f"peak {max(m for _, m, _ in recorder.samples):.0f} MiB resident\n")
+    print("| phase | start s | seconds | peak MiB | cores busy |")
+    print("|---|---|---|---|---|")
     for label, start, stop in recorder.spans:
         print(f"| {label} | {start:.2f} | {stop - start:.2f} | "
-              f"{recorder.peak(start, stop):.0f} |")
+              f"{recorder.peak(start, stop):.0f} | {recorder.cores(start, stop):.1f} |")
+    print(f"| the whole run | 0.00 | {total:.2f} | | {recorder.cores(0.0, total):.1f} |")
 
 
 if __name__ == "__main__":
