@@ -52,11 +52,18 @@ class CellGrid:
     normals: np.ndarray
     area: np.ndarray
 
-    def means(self, values: np.ndarray, where: np.ndarray) -> np.ndarray:
-        """Each cell's mean of ``values`` (first two axes the image's) over ``where``."""
-        total = _cell_sum(values, where, self.step)
-        return total / np.maximum(self.count, 1.0).reshape(self.count.shape +
-                                                           (1,) * (values.ndim - 2))
+    def means(self, values: np.ndarray, where: np.ndarray, every: int = 1) -> np.ndarray:
+        """Each cell's mean of ``values`` (first two axes the image's) over ``where``.
+
+        ``every`` > 1: ``values`` holds every ``every``-th row and column of the
+        image (from the first), a sample of it; each cell's mean is then over
+        its sampled pixels (``where`` is still the whole image's)."""
+        if every == 1:
+            total, count = _cell_sum(values, where, self.step), self.count
+        else:
+            total, count = _sampled_cell_sum(values, where[::every, ::every], every,
+                                             self.step, self.count.shape)
+        return total / np.maximum(count, 1.0).reshape(count.shape + (1,) * (values.ndim - 2))
 
 
 @dataclass(frozen=True)
@@ -101,7 +108,7 @@ def cell_heights(grid: CellGrid, height: np.ndarray, surface: np.ndarray) -> np.
 
 
 def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.ndarray,
-           albedo: np.ndarray) -> BounceGrid:
+           albedo: np.ndarray, *, every: int = 1) -> BounceGrid:
     """Gather the light the surface sends itself.
 
     Parameters
@@ -116,6 +123,9 @@ def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.nd
         The pixels ``grid`` was made of.
     albedo : (H, W, c) ndarray
         Each pixel's albedo (NaN: none); only for the :attr:`BounceGrid.share`.
+    every : int, optional
+        ``scene`` holds every ``every``-th row and column of the image, a
+        sample of it (:meth:`CellGrid.means`).
 
     Returns
     -------
@@ -124,7 +134,7 @@ def gather(grid: CellGrid, height: np.ndarray, scene: np.ndarray, surface: np.nd
     m, c = scene.shape[0], scene.shape[3]
     radiance = np.empty((*grid.valid.shape, m, c))
     for i in range(m):  # one image at a time: no stack-sized temporaries
-        radiance[:, :, i] = grid.means(scene[i], surface)
+        radiance[:, :, i] = grid.means(scene[i], surface, every)
     radiance = radiance.reshape(*grid.valid.shape, m * c)
     irradiance = np.zeros_like(radiance)
     _bounce_kernels.gather(_bounce_kernels.Cells(
@@ -217,3 +227,19 @@ def _cell_sum(values: np.ndarray, where: np.ndarray, step: int) -> np.ndarray:
     _bounce_kernels.cell_sums(np.ascontiguousarray(values, dtype=np.float32).reshape(h, w, -1),
                               np.ascontiguousarray(where, dtype=bool), int(step), out)
     return out.reshape(*out.shape[:2], *rest)
+
+
+def _sampled_cell_sum(values: np.ndarray, where: np.ndarray, every: int, step: int,
+                      shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_cell_sum` of a sample (every ``every``-th row and column of the
+    image; ``where`` sampled alike) on the whole image's ``step`` x ``step``
+    cells, of ``shape``; and each cell's sampled pixels."""
+    rows = np.arange(where.shape[0]) * every // step
+    cols = np.arange(where.shape[1]) * every // step
+    cell = (rows[:, None] * shape[1] + cols[None, :])[where]
+    flat = np.asarray(values, dtype=np.float64)[where].reshape(len(cell), -1)
+    size = shape[0] * shape[1]
+    total = np.stack([np.bincount(cell, flat[:, k], minlength=size)
+                      for k in range(flat.shape[1])], axis=-1)
+    count = np.bincount(cell, minlength=size).astype(np.float64)
+    return total.reshape(*shape, *values.shape[2:]), count.reshape(shape)

@@ -35,20 +35,29 @@ from __future__ import annotations
 import sys
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from colorps._checks import mask_box
 from colorps._config import MIN_LIGHTS
-from colorps.bounce import BounceGrid, at_pixels, bounced_light, cell_grid, gather, light_at
+from colorps.attached_shadows import attached_shadows, bounce_scale
+from colorps.bounce import (
+    BounceGrid,
+    CellGrid,
+    at_pixels,
+    bounced_light,
+    cell_grid,
+    gather,
+    light_at,
+)
 from colorps.errors import InterreflectionWarning
 from colorps.gauge import Gauge
 from colorps.geometry import angular_error
 from colorps.integrate import integrate
 
-__all__ = ["attached_shadows", "bounce_grid", "bounce_scale", "left_in", "moved_by",
-           "sees_itself", "with_bounce_left_in", "with_scale_uncertainty",
-           "without_interreflections"]
+__all__ = ["SceneSample", "attached_shadows", "bounce_grid", "bounce_scale", "left_in",
+           "moved_by", "relief_cells", "sees_itself", "with_bounce_left_in",
+           "with_scale_uncertainty", "without_interreflections"]
 
 #: Cells (at most) of the grid the bounce is gathered on: 4096 costs 0.3 s for
 #: 32 RGB images on 2 cores, and the bounced light is smooth at that scale.
@@ -106,28 +115,38 @@ SCALE_FACTORS = tuple(SCALE_STEP ** k for k in range(-2, 3))
 #: the errors within the radius without it, 80 % with it; their ranking,
 #: Spearman 0.50 -> 0.62).
 SCALE_UNCERTAINTY = 0.1
-#: Measurements in attached shadow (with some bounced light) needed to fit the scale;
-#: fewer, and the bounced light is left in (not guessed from the stated albedo).
-MIN_SHADOWED = 200
-#: A light leaves a gauge pixel dark (its attached shadow) when it gives it
-#: under this share of what it gives the gauge's brightest pixel: above the
-#: noise of a dark gauge, below what a light grazing it gives.
-SHADOW_LEVEL = 0.02
-#: ... and a scene's measurement counts as in attached shadow when every gauge
-#: pixel within this angle of its normal is dark: a normal a little off (the
-#: bounced light tilts a fold's by degrees) or a light a little nearer than
-#: far away must not bring a lit measurement in. Wider is as safe but fits
-#: higher, from the deepest shadows, where the grid's gathering falls shortest
-#: (Mitsuba's matte pot: 1.35 at 0 degrees, 1.38 at 2, 1.48 at 5, 1.80 at 10).
-SHADOW_MARGIN_DEG = 2.0
-#: Solved pixels (a fixed draw) the scale is fitted on: under 96 lights their
-#: measurements and gathered light take 46 MB (100,000: 230 MB), and Mitsuba's
-#: matte pot's scale came out 1.108 (100,000: 1.105), its normals the same.
-SCALE_PIXELS = 20_000
+#: The bounced light is first looked for on every SAMPLE_EVERY-th row and column
+#: of the scene (:class:`SceneSample`, a sixteenth of it, kept from its first
+#: read): when even SAMPLE_MARGIN times the scale fitted there reaches too few
+#: cells to matter, the scene is not read again (a 4 MP capture: 1.2 s less).
+#: Any other outcome reads it and looks again on all of it, as without a sample.
+#: A margin of 2 is far wider than the sample's error: the scale is fitted on as
+#: many pixels either way (:data:`colorps.attached_shadows.SCALE_PIXELS`), and a
+#: cell's mean radiance on at least 2 x 2 of its pixels (or the sample is not used).
+SAMPLE_EVERY = 4
+SAMPLE_MARGIN = 2.0
+
+
+@dataclass(frozen=True)
+class SceneSample:
+    """Every :data:`SAMPLE_EVERY`-th row and column of a scene stack, from the
+    first (``values``, (m, h, w, c) float32), kept from its first read for
+    :func:`without_interreflections`' first look."""
+
+    values: np.ndarray
+
+    @property
+    def every(self) -> int:
+        return SAMPLE_EVERY
+
+    @classmethod
+    def of(cls, scene: np.ndarray) -> SceneSample:
+        return cls(np.array(scene[:, ::SAMPLE_EVERY, ::SAMPLE_EVERY], dtype=np.float32))
 
 
 def bounce_grid(scene: np.ndarray, normals: np.ndarray, solved: np.ndarray,
-                albedo: np.ndarray, *, cells: int = BOUNCE_CELLS) -> BounceGrid:
+                albedo: np.ndarray, *, cells: int = BOUNCE_CELLS, every: int = 1,
+                relief: tuple[CellGrid, np.ndarray] | None = None) -> BounceGrid:
     """The light the solved object sends itself, its relief integrated from its normals.
 
     :func:`colorps.bounce.gather` on a :func:`colorps.bounce.cell_grid`, the
@@ -144,107 +163,40 @@ def bounce_grid(scene: np.ndarray, normals: np.ndarray, solved: np.ndarray,
         Each pixel's albedo (relative to the gauge's stated one).
     cells : int, optional
         Cells of the grid, at most.
+    every : int, optional
+        ``scene`` holds every ``every``-th row and column of the image (a
+        :class:`SceneSample`'s values): each cell's radiance is the mean of its
+        sampled pixels.
+    relief : (CellGrid, ndarray), optional
+        :func:`relief_cells` of ``normals`` and ``solved`` at ``cells``, made before.
     """
+    grid, height = relief_cells(normals, solved, cells) if relief is None else relief
+    return gather(grid, height, scene, solved, albedo, every=every)
+
+
+def relief_cells(normals: np.ndarray, solved: np.ndarray, cells: int = BOUNCE_CELLS
+                 ) -> tuple[CellGrid, np.ndarray]:
+    """The solved object's :func:`colorps.bounce.cell_grid` of at most ``cells``
+    cells, and its relief (in cells) integrated from their mean normals."""
     grid = cell_grid(normals, solved, cells)
     height = np.zeros(grid.valid.shape)
     if grid.valid.any():
         height = np.nan_to_num(integrate(np.where(grid.valid[..., None], grid.normals, np.nan),
                                          grid.valid))
-    return gather(grid, height, scene, solved, albedo)
+    return grid, height
 
 
-def bounce_scale(scene: np.ndarray, grid: BounceGrid, result,
-                 in_shadow: Callable[[np.ndarray], np.ndarray]) -> float | None:
-    """The factor ``grid``'s bounced light is off by: the albedo's unknown absolute scale.
-
-    Fitted by least squares, ``scene = dark + scale * bounced`` (``dark``, at
-    least 0, the level shadows hold without any light: a camera's noise
-    clipped at zero, which averages 0.4 sigma, or flare), on the measurements
-    in attached shadow (``in_shadow``: :func:`attached_shadows` of the gauge,
-    at the normals of ``result``, the solve ``grid`` was made from), which only
-    bounced light reaches. Cast shadows are not used: their partly lit edges (a
-    lens's blur, a light's size, a renderer's pixel filter) bias the fit high
-    (Mitsuba's matte pot under 96 lights fitted 2.3 on them where the bounced
-    light it rendered, its images less those of the direct light alone, fits
-    1.3; on attached shadows 1.38, and the rendered bounced light there 1.38).
-    Fitted on up to :data:`SCALE_PIXELS` of the solved pixels (a fixed draw);
-    capped where the median albedo would reflect all the light it gets (a few
-    pixels' albedo, from few lights, can be far off). None when fewer than
-    :data:`MIN_SHADOWED` such measurements hold bounced light.
-    """
-    ys, xs = np.nonzero(result.solved)
-    if ys.size > SCALE_PIXELS:
-        keep = np.sort(np.random.default_rng(0).choice(ys.size, SCALE_PIXELS, replace=False))
-        ys, xs = ys[keep], xs[keep]
-    shadowed = in_shadow(result.normals[ys, xs])  # (m, n)
-    gathered = light_at(grid, result.albedo, ys, xs)[shadowed]
-    if (gathered > 0).sum() < MIN_SHADOWED:
-        return None
-    scale = _through_dark_level(scene[:, ys, xs][shadowed].ravel(), gathered.ravel())
-    typical = float(np.nanmedian(result.albedo[result.solved])) if result.solved.any() else 0.0
-    return float(np.clip(scale, 0.0, 1.0 / typical if typical > 0 else np.inf))
-
-
-def _through_dark_level(seen: np.ndarray, gathered: np.ndarray) -> float:
-    """The least-squares slope of ``seen = dark + slope * gathered``, the dark
-    level at least 0 (through the origin where the free fit puts it below)."""
-    seen, gathered = seen.astype(np.float64), gathered.astype(np.float64)
-    centred = gathered - gathered.mean()
-    slope = float((seen * centred).sum() / max(float((centred * centred).sum()), 1e-300))
-    if seen.mean() - slope * gathered.mean() >= 0.0:
-        return slope
-    return float((seen * gathered).sum() / max(float((gathered * gathered).sum()), 1e-300))
-
-
-def attached_shadows(gauge: Gauge, gauge_stack: np.ndarray
-                     ) -> Callable[[np.ndarray], np.ndarray]:
-    """Where each light of ``gauge_stack`` leaves the gauge dark (under
-    :data:`SHADOW_LEVEL` of its brightest pixel) at a normal and at every gauge
-    pixel within :data:`SHADOW_MARGIN_DEG` of it: its attached shadow.
-
-    Returns ``in_shadow(normals)``: (m, n) bool at (n, 3) ``normals`` (False
-    where not finite). The gauge's part (each light's dark pixels, by a
-    distance transform of its lit ones in the sphere's box, and the search
-    tree of its normals) is made once, for every pass's normals.
-    """
-    from scipy import ndimage
-    from scipy.spatial import cKDTree
-
-    m = gauge_stack.shape[0]
-    inside = gauge.mask & np.isfinite(gauge.normals).all(axis=-1)
-    rows, cols = mask_box(inside, 1)
-    inside = inside[rows, cols]
-    if not inside.any():
-        return lambda normals: np.zeros((m, len(normals)), dtype=bool)
-    tree = cKDTree(gauge.normals[rows, cols][inside])
-    margin = gauge.sphere[2] * np.sin(np.radians(SHADOW_MARGIN_DEG)) \
-        if gauge.sphere is not None else 1.0
-    dark = np.empty((m, int(inside.sum())), dtype=bool)  # (m, gauge pixels)
-    for light, image in enumerate(gauge_stack):
-        value = np.nan_to_num(np.asarray(image[rows, cols], dtype=np.float32)).sum(axis=-1)
-        brightest = float(value[inside].max())
-        unlit = ~((value > SHADOW_LEVEL * brightest) & inside)
-        away = ndimage.distance_transform_edt(unlit) if not unlit.all() else \
-            np.full(unlit.shape, np.inf)  # (pixels to the nearest lit one)
-        dark[light] = away[inside] > margin
-
-    def in_shadow(normals: np.ndarray) -> np.ndarray:
-        nearest = tree.query(np.nan_to_num(normals))[1]
-        return dark[:, nearest] & np.isfinite(normals).all(axis=-1)[None]
-
-    return in_shadow
-
-
-def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_CELLS
-                ) -> float:
+def sees_itself(normals: np.ndarray, solved: np.ndarray, *, cells: int = BOUNCE_CELLS,
+                relief: tuple[CellGrid, np.ndarray] | None = None) -> float:
     """Share of an object's cells whose view is at least :data:`MIN_SHARE` filled
     by the object itself (its form factor to itself): 0 for a convex one.
 
-    From the shape alone (``normals`` where ``solved``), before any image is read
-    again.
+    From the shape alone (``normals`` where ``solved``; ``relief``, optional:
+    their :func:`relief_cells`), before any image is read again.
     """
     ones = np.ones((1, *solved.shape, 1), dtype=np.float32)
-    grid = bounce_grid(ones, normals, solved, np.ones((*solved.shape, 1)), cells=cells)
+    grid = bounce_grid(ones, normals, solved, np.ones((*solved.shape, 1)), cells=cells,
+                       relief=relief)
     return float(np.mean(grid.share[grid.valid] >= MIN_SHARE)) if grid.valid.any() else 0.0
 
 
@@ -263,7 +215,8 @@ def left_in(result, why: str, advice: str) -> dict:
 def without_interreflections(read_scene: Callable[[], np.ndarray], first,
                              solve: Callable, gauge: Gauge, gauge_stack: np.ndarray, *,
                              passes: int = PASSES, cells: int = BOUNCE_CELLS,
-                             solved_as_read: bool = True, progress: bool = False):
+                             solved_as_read: bool = True, sample: SceneSample | None = None,
+                             progress: bool = False):
     """Solve a scene again without the light its own surfaces bounce.
 
     Parameters
@@ -292,6 +245,10 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         whose bounced light another gauge's solve took out), and a pass is
         kept when it explains the probe better than ``solve`` does the
         measurements as read (solved on the probe alone).
+    sample : SceneSample, optional
+        Of the measurements ``first`` was solved from: looked at first
+        (:data:`SAMPLE_MARGIN`); ``read_scene`` is then called only when it
+        shows enough bounced light to matter.
     progress : bool, optional
         Say on stderr what is done (the object sees itself, each pass, why the
         bounced light stays in).
@@ -324,26 +281,34 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         any solve when the scale cannot be fitted (no attached shadows: the bounced
         light is not guessed) or at it under :data:`MIN_LIT_CELLS` of the cells
         are so reached; ``fitted_scale``, when no pass was kept after the scale
-        was fitted (for :func:`with_bounce_left_in`).
+        was fitted (for :func:`with_bounce_left_in`); ``sampled``, when only
+        ``sample`` was looked at (its :attr:`SceneSample.every`).
     """
-    record = dict(sees_itself=sees_itself(first.normals, first.solved, cells=cells),
+    relief = relief_cells(first.normals, first.solved, cells)  # (first's, for each look)
+    record = dict(sees_itself=sees_itself(first.normals, first.solved, relief=relief),
                   passes=0, scale=None, bounced_share=None, residuals=[], stopped=None)
     if record["sees_itself"] < MIN_LIT_CELLS:
         return first, None, record
     say = _say if progress else (lambda message: None)
     say(f"{record['sees_itself']:.0%} of the object sees itself: estimating the light it "
         "bounces onto itself")
-    scene, result, corrected, probe, factor, scale = read_scene(), first, None, None, 1.0, None
     in_shadow = attached_shadows(gauge, gauge_stack)
+    scale = None if sample is None else _too_little_in(sample, first, in_shadow, relief)
+    if scale is not None:
+        record.update(stopped=_TOO_LITTLE, fitted_scale=scale, sampled=sample.every)
+        say(f"the bounced light stays in: {_TOO_LITTLE} (on a sample of the pixels)")
+        return first, None, record
+    scene, result, corrected, probe, factor = read_scene(), first, None, None, 1.0
     for index in range(passes):
-        grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells)
+        grid = bounce_grid(scene, result.normals, result.solved, result.albedo, cells=cells,
+                           relief=relief if result is first else None)
         scale = bounce_scale(scene, grid, result, in_shadow)
         if scale is None:
             record["stopped"] = _NO_SHADOWS
             break
         reached = grid.valid & (scale * grid.share >= MIN_SHARE)
         if reached.sum() < MIN_LIT_CELLS * grid.valid.sum():
-            record["stopped"] = "the shadows show too little bounced light to matter"
+            record["stopped"] = _TOO_LITTLE
             break
         if probe is None:  # tried first on a sample of the pixels it reaches
             probe = _probe(reached, grid.step, first.solved)
@@ -452,7 +417,25 @@ def with_scale_uncertainty(result, moved: np.ndarray):
 
 
 _NO_SHADOWS = "too few measurements in attached shadow to fit its scale"
+_TOO_LITTLE = "the shadows show too little bounced light to matter"
 _WORSE_THAN_BEFORE = "the gauge explains it no better than after the pass before"
+
+
+def _too_little_in(sample: SceneSample, first, in_shadow: Callable,
+                   relief: tuple[CellGrid, np.ndarray]) -> float | None:
+    """The bounced light's scale fitted on ``sample`` when even :data:`SAMPLE_MARGIN`
+    times it reaches under :data:`MIN_LIT_CELLS` of the cells of ``relief``
+    (``first``'s :func:`relief_cells`); else None (as when the cells are under 2 x 2
+    of the sample's pixels, or the scale cannot be fitted)."""
+    grid = bounce_grid(sample.values, first.normals, first.solved, first.albedo,
+                       every=sample.every, relief=relief)
+    if grid.step < 2 * sample.every:
+        return None
+    scale = bounce_scale(sample.values, grid, first, in_shadow, every=sample.every)
+    if scale is None:
+        return None
+    reached = grid.valid & (SAMPLE_MARGIN * scale * grid.share >= MIN_SHARE)
+    return scale if reached.sum() < MIN_LIT_CELLS * grid.valid.sum() else None
 
 
 def _without_at(scene: np.ndarray, grid: BounceGrid, scale: float, albedo: np.ndarray,

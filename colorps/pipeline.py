@@ -51,6 +51,7 @@ from .inputs import CaptureFiles
 from .integrate import DEFAULT_TILE, integrate, weights_from_quality
 from .interreflection import (
     PASSES_AGAIN,
+    SceneSample,
     left_in,
     moved_by,
     with_bounce_left_in,
@@ -201,6 +202,8 @@ def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Option
     along_rays = plan.rows is None and _view_matters(inputs, virtual)  # (no fit in tiles)
     view = (stacks.light_set, virtual, inputs.camera) if along_rays else None
     tables = _solves_tables(run, stacks.shape)
+    sample = SceneSample.of(scene) if plan.rows is None and view is None and \
+        run.options.interreflections else None  # the bounced light's first look
     if plan.rows is not None:
         with dask_client(scheduler) as client:
             result, preview = reconstruct_tiled(
@@ -214,9 +217,11 @@ def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Option
                                              progress, tables)
     check_solved(result, stacks.scene_paths, stacks.gauge_paths, inputs.mask)
     checked = _with_axes(checked, result, inputs)
+    read_again = None if plan.rows is not None else \
+        (lambda: _read_scene(stacks, run.options, plan, progress, True)[0])  # (tiled: none)
     result, solved_from, bounced, moved = _without_interreflections(
-        result, stacks, gauge_stack, gauge, run, mask, plan, view, progress, tables)
-    del tables  # (its grids)
+        result, read_again, gauge_stack, gauge, run, mask, view, progress, tables, sample)
+    del tables, sample  # (the grids, the sample)
     corrected = result
     if virtual is not None and solved_from is not None:  # its finish fitted again
         result, run, virtual = with_own_finish(  # (seen along the axis if along_rays)
@@ -225,16 +230,14 @@ def _solved(handed: list, inputs: CaptureFiles, stacks: _Stacks, options: Option
     lights = stacks.light_set  # (the gauge's, measured, when the finish route is taken)
     if inputs.lights is None and run.options.finish_check and \
             finish_may_differ(result.stats.model_scale, checked):
-        if solved_from is None and plan.rows is None:  # (a tiled run's: not tried)
-            solved_from = _read_scene(stacks, run.options, plan, progress, True)[0]
+        if solved_from is None and read_again is not None:  # (a tiled run's: not tried)
+            solved_from = read_again()
         result, run, virtual, lights = _with_gauge_lights(
             result, stacks, gauge_stack, gauge, run, mask, inputs, checked, progress,
             solved_from)
         if virtual is not None and bounced.get("passes"):
-            result, run, virtual = _bounced_again(
-                result, run, virtual, lights,
-                lambda: _read_scene(stacks, run.options, plan, progress, True)[0],
-                mask, inputs, progress, bounced)
+            result, run, virtual = _bounced_again(result, run, virtual, lights, read_again,
+                                                  mask, inputs, progress, bounced)
     if moved is not None and result is not corrected:  # solved again: the scale's radius
         result = with_scale_uncertainty(result, moved)
     del solved_from, corrected, moved
@@ -484,26 +487,28 @@ def _solves_tables(run: Resolved, shape: tuple[int, int, int, int]) -> GaugeTabl
                        if run.options.interreflections else 0)
 
 
-def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge,
-                              run: Resolved, mask, plan: TilePlan, view, progress: bool,
-                              tables: GaugeTables):
+def _without_interreflections(result, read_again, gauge_stack, gauge: Gauge, run: Resolved,
+                              mask, view, progress: bool, tables: GaugeTables,
+                              sample: SceneSample | None):
     """The result solved again without the light a concave object bounces onto itself
-    (:func:`interreflection.without_interreflections`, the scene read again only
-    then), the measurements it was solved from (None: as read), report.json's record,
+    (:func:`interreflection.without_interreflections`, the scene read again, by
+    ``read_again()``, only then; None: a tiled run's, left in), the measurements
+    it was solved from (None: as read), report.json's record,
     and how far taking it out moved each normal (:func:`interreflection.moved_by`;
     None: not taken out), for a result solved again from those measurements.
     ``view``: None, or (lights, finish and fits, camera) of a run matched again
     under its finish (:func:`virtual.matched_again`), whose scene is read as
-    that match saw it (:func:`virtual.corrected`, at ``result``'s normals)."""
+    that match saw it (:func:`virtual.corrected`, at ``result``'s normals).
+    ``sample``: of the scene as read, looked at before it is read again."""
     if not run.options.interreflections:
         return result, None, dict(skipped="--no-interreflections"), None
-    if plan.rows is not None:
+    if read_again is None:
         return result, None, left_in(
             result, "a tiled run", " (untiled, without --tile and with enough "
             "--memory-limit, that light is taken out)"), None
 
     def read_scene():
-        scene = _read_scene(stacks, run.options, plan, progress, True)[0]
+        scene = read_again()
         if view is None:
             return scene
         lights, virtual, camera = view
@@ -511,7 +516,7 @@ def _without_interreflections(result, stacks: _Stacks, gauge_stack, gauge: Gauge
 
     corrected_result, solved_from, record = without_interreflections(
         read_scene, result, _solve_with(gauge_stack, gauge, run, mask, progress, tables), gauge,
-        gauge_stack, progress=progress)
+        gauge_stack, sample=sample, progress=progress)
     return corrected_result, solved_from, record, \
         None if solved_from is None else moved_by(corrected_result, result)
 

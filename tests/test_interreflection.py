@@ -17,6 +17,7 @@ from colorps.interreflection import (
     PROBE_PIXELS,
     SCALE_FACTORS,
     SCALE_UNCERTAINTY,
+    SceneSample,
     sees_itself,
     with_bounce_left_in,
     without_interreflections,
@@ -81,22 +82,26 @@ def test_gathered_light_in_a_groove_is_what_rays_through_it_see():
         assert grid.irradiance[y, x, 0, 0] == pytest.approx(expected, rel=0.07)
 
 
-def test_cell_means_are_the_means_of_the_pixels_in_each_block():
+@pytest.mark.parametrize("every", [1, 3])
+def test_cell_means_are_the_means_of_the_pixels_in_each_block(every):
     """Blocks cut by the image's edge and pixels off the surface (NaN there)
-    left out, against a loop over the blocks."""
+    left out, against a loop over the blocks; of a sample (every third row and
+    column), the means of the sampled pixels in each block."""
     rng = np.random.default_rng(1)
-    values = rng.random((23, 17, 2, 3)).astype(np.float32)
-    surface = rng.random((23, 17)) < 0.7
+    values = rng.random((53, 47, 2, 3)).astype(np.float32)
+    surface = rng.random((53, 47)) < 0.7
     values[~surface] = np.nan
-    normals = np.dstack([np.zeros((23, 17, 2)), np.ones((23, 17))])
+    normals = np.dstack([np.zeros((53, 47, 2)), np.ones((53, 47))])
     grid = cell_grid(normals, surface, 30)
-    means = grid.means(values, surface)
+    means = grid.means(values[::every, ::every], surface, every)
     step = grid.step
-    for cy in range(-(-23 // step)):
-        for cx in range(-(-17 // step)):
+    sampled = np.zeros_like(surface)
+    sampled[::every, ::every] = True
+    for cy in range(-(-53 // step)):
+        for cx in range(-(-47 // step)):
             block = np.s_[cy * step:(cy + 1) * step, cx * step:(cx + 1) * step]
-            inside = surface[block]
-            assert grid.count[cy, cx] == inside.sum()
+            inside = surface[block] & sampled[block]
+            assert grid.count[cy, cx] == surface[block].sum()
             expected = values[block][inside].mean(axis=0) if inside.any() else 0.0
             np.testing.assert_allclose(means[cy, cx], expected, rtol=1e-6)
 
@@ -211,6 +216,47 @@ def test_bounced_light_left_in_widens_the_radii_as_much_as_it_tilts(bounced_fold
     assert with_bounce_left_in(first, dict(passes=1)) is first
     none_seen = dict(fitted_scale=0.0)  # the shadows showed no bounced light
     assert with_bounce_left_in(first, none_seen) is first and none_seen["left_in_share"] == 0
+
+
+#: Cells for the folds' grid (96 px): 12 px a side, so that a sample of every
+#: fourth pixel has 3 x 3 of each cell's (the default grid's cells would be 2 px).
+SAMPLED_CELLS = 64
+
+
+@pytest.mark.parametrize("bounce", [0.0, 1.0])
+def test_a_sample_of_the_scene_decides_as_the_whole_does(bounce, bounced_folds):
+    """The folds without bounced light: the scene's sample (every fourth row and
+    column) shows too little of it to matter, as the whole scene does, at about
+    the same scale; the scene is not read again. With a physical bounce it shows
+    enough: the scene is read once, and the result is the one without a sample."""
+    scene, stack, gauge_stack, gauge = bounced_folds if bounce else \
+        _folds_capture(interreflection=0.0)
+
+    def solve(images, pixels=None, model_scale=None):
+        return reconstruct(images, gauge_stack, gauge, model_scale=model_scale,
+                           mask=scene.mask if pixels is None else pixels)
+
+    first, reads = solve(stack), []
+
+    def read_scene():
+        reads.append(1)
+        return stack
+
+    whole = without_interreflections(lambda: stack, first, solve, gauge, gauge_stack,
+                                     cells=SAMPLED_CELLS)
+    looked = without_interreflections(read_scene, first, solve, gauge, gauge_stack,
+                                      cells=SAMPLED_CELLS, sample=SceneSample.of(stack))
+    assert whole[2]["sees_itself"] >= MIN_LIT_CELLS
+    if bounce:
+        assert len(reads) == 1 and whole[2]["passes"] >= 1 and "sampled" not in looked[2]
+        assert looked[2] == whole[2]
+        assert np.array_equal(looked[0].normals, whole[0].normals, equal_nan=True)
+    else:
+        assert not reads and looked[0] is first and looked[1] is None
+        assert looked[2]["stopped"] == whole[2]["stopped"] == \
+            "the shadows show too little bounced light to matter"
+        assert looked[2]["sampled"] == 4
+        assert looked[2]["fitted_scale"] == pytest.approx(whole[2]["fitted_scale"], abs=0.05)
 
 
 def _scale_at_true_shape(scene, images, gauge_stack, gauge) -> float | None:
