@@ -14,6 +14,42 @@ from __future__ import annotations
 from numba import njit, prange
 
 
+@njit(cache=True, parallel=True)
+def pair_equations(gx, grow, mask, weight, east, south, rhs, degree):
+    """The finest level of the height's normal equations (:mod:`colorps.integrate`):
+    each pair of 4-neighbours inside ``mask`` weighted by the lesser of their
+    ``weight``, its mean slope (``gx`` along x, ``grow`` along the rows) moved
+    into ``rhs``, and each pixel's summed pair weights into ``degree``; 0
+    elsewhere (every output is written)."""
+    h, w = mask.shape
+    for y in prange(h):
+        for x in range(w):
+            e = 0.0
+            if x + 1 < w and mask[y, x] and mask[y, x + 1]:
+                e = min(weight[y, x], weight[y, x + 1])
+            s = 0.0
+            if y + 1 < h and mask[y, x] and mask[y + 1, x]:
+                s = min(weight[y, x], weight[y + 1, x])
+            east[y, x] = e
+            south[y, x] = s
+    for y in prange(h):
+        for x in range(w):
+            total = 0.0
+            d = east[y, x] + south[y, x]
+            if x > 0:
+                total += east[y, x - 1] * 0.5 * (gx[y, x - 1] + gx[y, x])
+                d += east[y, x - 1]
+            if x + 1 < w:
+                total -= east[y, x] * 0.5 * (gx[y, x] + gx[y, x + 1])
+            if y > 0:
+                total += south[y - 1, x] * 0.5 * (grow[y - 1, x] + grow[y, x])
+                d += south[y - 1, x]
+            if y + 1 < h:
+                total -= south[y, x] * 0.5 * (grow[y, x] + grow[y + 1, x])
+            rhs[y, x] = total
+            degree[y, x] = d
+
+
 @njit(cache=True, inline="always")
 def _neighbours(u, east, south, y, x, h, w):
     """Sum of the weighted neighbour values of pixel (y, x)."""

@@ -265,29 +265,21 @@ def _integrate_poisson(gx, grow, mask, weights, tol, anchor=None) -> np.ndarray:
 def _grid_equations(gx, grow, mask, weights, anchor):
     """The normal equations of :func:`_normal_equations` as a
     :class:`~colorps.multigrid.GridSystem` and its right-hand side (H, W)."""
+    from ._mg_kernels import pair_equations
     from .multigrid import GridSystem
 
     h, w = mask.shape
     weight = np.ones((h, w)) if weights is None else np.asarray(weights, dtype=np.float64)
-    east, south = np.zeros((h, w)), np.zeros((h, w))
-    east[:, :-1] = np.where(mask[:, :-1] & mask[:, 1:],
-                            np.minimum(weight[:, :-1], weight[:, 1:]), 0.0)
-    south[:-1] = np.where(mask[:-1] & mask[1:], np.minimum(weight[:-1], weight[1:]), 0.0)
-    rhs = np.zeros((h, w))
-    flux = east[:, :-1] * 0.5 * (gx[:, :-1] + gx[:, 1:])
-    rhs[:, 1:] += flux
-    rhs[:, :-1] -= flux
-    flux = south[:-1] * 0.5 * (grow[:-1] + grow[1:])
-    rhs[1:] += flux
-    rhs[:-1] -= flux
-    del flux
-    degree = east + south
-    degree[:, 1:] += east[:, :-1]
-    degree[1:] += south[:-1]
+    east, south, rhs, degree = (np.empty((h, w)) for _ in range(4))
+    pair_equations(np.ascontiguousarray(gx, dtype=np.float64),
+                   np.ascontiguousarray(grow, dtype=np.float64),
+                   np.ascontiguousarray(mask, dtype=np.bool_), np.ascontiguousarray(weight),
+                   east, south, rhs, degree)
     pairs = int((mask[:, :-1] & mask[:, 1:]).sum() + (mask[:-1] & mask[1:]).sum())
     mean_weight = (east.sum() + south.sum()) / pairs if pairs else 0.0
     # As in _normal_equations: a tiny shift makes each part's constant unique.
-    diag = degree + 1e-9 * max(mean_weight, 1e-12)
+    diag = degree
+    diag += 1e-9 * max(mean_weight, 1e-12)
     if anchor is not None:
         held = np.where(mask, anchor, np.nan)
         pull = np.where(np.isfinite(held), ANCHOR_WEIGHT * max(mean_weight, 1e-12), 0.0)

@@ -43,6 +43,7 @@ import html
 import json
 import shutil
 import tempfile
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
@@ -100,7 +101,8 @@ def pyramid_steps(shape: tuple[int, int], max_side: int = VIEWER_MAX_SIDE,
 
 def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str = "",
                  finish: dict | None = None, max_side: int = VIEWER_MAX_SIDE,
-                 min_side: int = VIEWER_MIN_SIDE) -> Path:
+                 min_side: int = VIEWER_MIN_SIDE,
+                 finished: Callable[[], Reconstruction] | None = None) -> Path:
     """Write ``index.html`` and ``viewer/`` for a reconstruction into a folder.
 
     Parameters
@@ -118,6 +120,10 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
         ``brdf``): the page can relight with it.
     max_side, min_side : int, optional
         The pyramid's bounds (see :func:`pyramid_steps`).
+    finished : callable, optional
+        ``finished()`` returns ``result`` with its height, while the height is
+        still being integrated: the maps that do not need it are encoded first
+        (the finest level's, most of the work, while it waits).
 
     Returns
     -------
@@ -128,8 +134,7 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     maps = _maps(result)
     # Normals and codes have fixed ranges; the other maps span their values.
     ranges = {"normal": [(-1.0, 1.0)] * 3, "codes": [_COUNT_RANGE] * 2,
-              **{name: [code_range(channel) for channel in maps[name]]
-                 for name in ("albedo", "scalars")}}
+              "albedo": [code_range(channel) for channel in maps["albedo"]]}
     steps = pyramid_steps(result.normals.shape, max_side, min_side)
     data = out / "viewer"
     data.mkdir(exist_ok=True)
@@ -138,14 +143,21 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
         # OpenImageIO's PNG encoder releases the GIL: the maps encode in parallel,
         # WRITE_THREADS at a time (each holds its codes and bytes).
         with ThreadPoolExecutor(WRITE_THREADS) as pool:
-            for k, step in enumerate(steps):
-                pending = {name: pool.submit(_png_pair, [c[::step, ::step] for c in channels],
-                                             ranges[name], scratch / f"{k}-{name}")
-                           for name, channels in maps.items()}
+            for k in reversed(range(len(steps))):  # the finest first (see ``finished``)
+                def encode_map(name, k=k):
+                    return pool.submit(_png_pair, [c[::steps[k], ::steps[k]] for c in maps[name]],
+                                       ranges[name], scratch / f"{k}-{name}")
+
+                pending = {name: encode_map(name) for name in maps}
+                if "scalars" not in maps:  # (the height, waited for once)
+                    result = result if finished is None else finished()
+                    maps["scalars"] = _scalars(result)
+                    ranges["scalars"] = [code_range(channel) for channel in maps["scalars"]]
+                    pending["scalars"] = encode_map("scalars")
                 # Written map by map: the finest level's text is tens of megabytes.
                 with open(data / f"level{k}.js", "w", encoding="utf-8") as script:
                     script.write(f"colorpsLevel({k}, {{")
-                    for j, name in enumerate(list(pending)):
+                    for j, name in enumerate(_MAP_ORDER):
                         urls = pending.pop(name).result()  # dropped once written
                         script.write(f"{', ' if j else ''}{json.dumps(name)}: {json.dumps(urls)}")
                     script.write("});\n")
@@ -157,17 +169,25 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
     return page
 
 
+#: The maps of a level, in the order its script lists them.
+_MAP_ORDER = ("normal", "albedo", "scalars", "codes")
+
+
 def _maps(result: Reconstruction) -> dict[str, list[np.ndarray]]:
-    """The viewer's maps, each a list of (H, W) channels (NaN = no value; views
-    of the result's maps where they can be, not copies)."""
+    """The viewer's maps but the scalars (:func:`_scalars`), each a list of (H, W)
+    channels (NaN = no value; views of the result's maps where they can be)."""
     albedo = result.albedo if result.albedo.shape[-1] == 1 else as_rgb(result.albedo)
-    height = result.height if result.height is not None else \
-        np.full(result.normals.shape[:2], np.nan, dtype=np.float32)
     count = np.minimum(result.lights_dropped_count, 255)
     return {"normal": [result.normals[..., k] for k in range(3)],
             "albedo": [albedo[..., k] for k in range(albedo.shape[-1])],
-            "scalars": [height, result.quality, result.uncertainty],
             "codes": [result.reason, count]}
+
+
+def _scalars(result: Reconstruction) -> list[np.ndarray]:
+    """The scalars map's channels: height (NaN without one), quality, uncertainty."""
+    height = result.height if result.height is not None else \
+        np.full(result.normals.shape[:2], np.nan, dtype=np.float32)
+    return [height, result.quality, result.uncertainty]
 
 
 def _png_pair(channels: list[np.ndarray], ranges, prefix: Path) -> list[str]:
