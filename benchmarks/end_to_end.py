@@ -157,7 +157,7 @@ def main(argv=None) -> None:
     parser.add_argument("--images", type=int, nargs="+", default=[8],
                         help="images (lights) per capture (default: 8)")
     args = parser.parse_args(argv)
-    colorps = [sys.executable, "-m", "colorps.cli"]
+    colorps = [sys.executable, "-m", "colorps"]  # as the console script runs it
     rows, previous, fewest = [], None, {}
     with tempfile.TemporaryDirectory() as tmp:
         for images, size in ((m, s) for m in sorted(args.images) for s in sorted(args.sizes)):

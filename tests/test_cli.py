@@ -201,6 +201,23 @@ def test_console_script_version_and_help():
     assert bad.returncode == 2
 
 
+def test_the_command_ends_with_its_exit_code_and_all_it_printed(tmp_path):
+    """``python -m colorps`` (the console script's entry) ends the process without
+    the interpreter's teardown: its output, piped, is all there, and its exit code
+    is the command's."""
+    wrote = subprocess.run([sys.executable, "-m", "colorps", "synth", "--out",
+                            str(tmp_path / "capture"), "--size", "32", "--gauge-radius", "12"],
+                           capture_output=True, text=True)
+    assert wrote.returncode == 0, wrote.stderr
+    assert wrote.stdout.endswith(f"wrote a synthetic stack with ground truth to "
+                                 f"{tmp_path / 'capture'}/\n")
+    failed = subprocess.run([sys.executable, "-m", "colorps", "reconstruct", "--scene",
+                             str(tmp_path / "none_*.exr"), "--gauge", "g", "--sphere", "auto",
+                             "--out", str(tmp_path / "out")], capture_output=True, text=True)
+    assert failed.returncode == 1 and "matches no file" in failed.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_bundled_demo_runs(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "demo")]) == 0
     assert "pixels solved" in capsys.readouterr().out
