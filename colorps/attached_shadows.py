@@ -62,7 +62,8 @@ def bounce_scale(scene: np.ndarray, grid: BounceGrid, result,
     pixels' albedo, from few lights, can be far off). None when fewer than
     :data:`MIN_SHADOWED` such measurements hold bounced light. ``every`` > 1:
     ``scene`` holds every ``every``-th row and column of the image (a
-    :class:`SceneSample`'s values), and the pixels are drawn from those.
+    :class:`colorps.interreflection.SceneSample`'s values), and the pixels are
+    drawn from those.
     """
     ys, xs = np.nonzero(result.solved[::every, ::every])  # (in the sample's pixels)
     if ys.size > SCALE_PIXELS:
