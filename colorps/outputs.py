@@ -458,8 +458,7 @@ def save_height(height: np.ndarray, out, *, mesh=None, overwrite: bool = False) 
 def _writers(result: Reconstruction, channel_names, scene_preview, report, exports: Exports,
              finished=None) -> dict[str, Callable[[Path], object]]:
     """``{file name: write(path)}`` of every file to write: the maps, then those
-    that need the height (waiting for ``finished``; the viewer, whose maps but
-    one need none, first when there is one to wait for), report.json last."""
+    that need the height (waiting for ``finished``), report.json last."""
 
     def final() -> Reconstruction:
         return result if finished is None else finished.result()
@@ -479,18 +478,7 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
     def picture(p, image):
         return write_image(p, image, dtype="uint8")
 
-    finish = (report or {}).get("brdf")  # a --lights run's fitted finish, for the viewer
-
-    def viewer(p):  # the page and its data folder beside it
-        return write_viewer(result, p.parent, band_names=channel_names, title=title,
-                            finish=finish, finished=final)
-
-    # The viewer goes first while the height is integrated beside the writing (its
-    # maps but one need no height: a 4 MP run's writing 6.6 -> 5.9 s), else last
-    # (a tiled 16 MP run under --memory-limit 2: 1663 MiB at its peak, 1996 first).
-    early = exports.viewer and finished is not None
-    writers = {"index.html": viewer} if early else {}
-    writers |= {
+    writers = {
         "normal.exr": lambda p: exr(p, result.normals, ["X", "Y", "Z"]),
         "normal.png": lambda p: write_image(p, picture_codes(
             lambda rows: normal_picture(result.normals[rows], exports.normal_convention),
@@ -527,8 +515,13 @@ def _writers(result: Reconstruction, channel_names, scene_preview, report, expor
             p, overview(preview, result.normals, result.albedo, final().height, title=title))
         for kind in exports.mesh:
             writers[MESH_FILES[kind]] = lambda p: _write_mesh(final().height, result.albedo, p)
-    if exports.viewer and not early:
-        writers["index.html"] = viewer
+    if exports.viewer:  # the page, and its data folder beside it
+        finish = (report or {}).get("brdf")  # a --lights run's fitted finish
+        writers["index.html"] = lambda p: write_viewer(
+            result, p.parent, band_names=channel_names, title=title, finish=finish,
+            finished=final)
+        if finished is not None:  # its maps but one need no height: first while it comes
+            writers = {"index.html": writers.pop("index.html"), **writers}  # (benchmarks.md)
     about = {"reasons": {str(int(r)): r.label for r in Reason}, "conventions": _CONVENTIONS}
 
     def report_json(p):
