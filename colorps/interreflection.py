@@ -306,8 +306,8 @@ def without_interreflections(read_scene: Callable[[], np.ndarray], first,
         if scale is None:
             record["stopped"] = _NO_SHADOWS
             break
-        reached = grid.valid & (scale * grid.share >= MIN_SHARE)
-        if reached.sum() < MIN_LIT_CELLS * grid.valid.sum():
+        reached, enough = _reached(grid, scale)
+        if not enough:
             record["stopped"] = _TOO_LITTLE
             break
         if probe is None:  # tried first on a sample of the pixels it reaches
@@ -427,15 +427,22 @@ def _too_little_in(sample: SceneSample, first, in_shadow: Callable,
     times it reaches under :data:`MIN_LIT_CELLS` of the cells of ``relief``
     (``first``'s :func:`relief_cells`); else None (as when the cells are under 2 x 2
     of the sample's pixels, or the scale cannot be fitted)."""
+    if relief[0].step < 2 * sample.every:
+        return None
     grid = bounce_grid(sample.values, first.normals, first.solved, first.albedo,
                        every=sample.every, relief=relief)
-    if grid.step < 2 * sample.every:
-        return None
     scale = bounce_scale(sample.values, grid, first, in_shadow, every=sample.every)
-    if scale is None:
+    if scale is None or _reached(grid, SAMPLE_MARGIN * scale)[1]:
         return None
-    reached = grid.valid & (SAMPLE_MARGIN * scale * grid.share >= MIN_SHARE)
-    return scale if reached.sum() < MIN_LIT_CELLS * grid.valid.sum() else None
+    return scale
+
+
+def _reached(grid: BounceGrid, scale: float) -> tuple[np.ndarray, bool]:
+    """The valid cells of ``grid`` whose bounced light at ``scale`` is at least
+    :data:`MIN_SHARE` of their measurements, and whether they are at least
+    :data:`MIN_LIT_CELLS` of the valid ones (enough to matter)."""
+    reached = grid.valid & (scale * grid.share >= MIN_SHARE)
+    return reached, bool(reached.sum() >= MIN_LIT_CELLS * grid.valid.sum())
 
 
 def _without_at(scene: np.ndarray, grid: BounceGrid, scale: float, albedo: np.ndarray,

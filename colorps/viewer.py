@@ -143,17 +143,17 @@ def write_viewer(result: Reconstruction, out_dir, *, band_names=None, title: str
         # OpenImageIO's PNG encoder releases the GIL: the maps encode in parallel,
         # WRITE_THREADS at a time (each holds its codes and bytes).
         with ThreadPoolExecutor(WRITE_THREADS) as pool:
-            for k in reversed(range(len(steps))):  # the finest first (see ``finished``)
-                def encode_map(name, k=k):
-                    return pool.submit(_png_pair, [c[::steps[k], ::steps[k]] for c in maps[name]],
-                                       ranges[name], scratch / f"{k}-{name}")
+            def encode(name: str, k: int):  # level k's pair of PNGs of map ``name``
+                return pool.submit(_png_pair, [c[::steps[k], ::steps[k]] for c in maps[name]],
+                                   ranges[name], scratch / f"{k}-{name}")
 
-                pending = {name: encode_map(name) for name in maps}
+            for k in reversed(range(len(steps))):  # the finest first (see ``finished``)
+                pending = {name: encode(name, k) for name in maps}
                 if "scalars" not in maps:  # (the height, waited for once)
                     result = result if finished is None else finished()
                     maps["scalars"] = _scalars(result)
                     ranges["scalars"] = [code_range(channel) for channel in maps["scalars"]]
-                    pending["scalars"] = encode_map("scalars")
+                    pending["scalars"] = encode("scalars", k)
                 # Written map by map: the finest level's text is tens of megabytes.
                 with open(data / f"level{k}.js", "w", encoding="utf-8") as script:
                     script.write(f"colorpsLevel({k}, {{")
