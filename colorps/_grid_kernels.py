@@ -728,7 +728,7 @@ def _lookup_chunk(queries, first, stop, grid, low, high, padded, out_row, out_di
         out_tests[q] = search.tests
 
 
-@njit(cache=True, parallel=True, fastmath=FASTMATH)
+@njit(cache=True, parallel=True, nogil=True, fastmath=FASTMATH)
 def lookup(queries, plane, entries, cells, buckets, sketch, blocks, plan, out_row,
            out_dist, out_buckets, out_tests):
     """Nearest table row of every query into the outputs (``prange`` over chunks).
@@ -752,7 +752,7 @@ def lookup(queries, plane, entries, cells, buckets, sketch, blocks, plan, out_ro
 
 
 # ---------------------------------------------------------------- build
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def bucket_summaries(sorted64, h_sorted, sketches, first, h_range, box_low, box_high, mean,
                      radius):
     """Per bucket: its [h_min, h_max], sketch box, mean and radius about the mean.

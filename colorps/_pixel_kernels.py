@@ -290,7 +290,7 @@ def light_set(ov, lights, valid, min_norm, variance, norm2, mean_variance, usabl
                 mean_variance[y, x, b] = spread / n_lights
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def group_table(gauge_ov, lights, gauge_norm2, pixels, bands, weights, table):
     """The table of a group: weighted unit gauge signatures of some bands at some
     pixels over some lights.
@@ -313,7 +313,7 @@ def group_table(gauge_ov, lights, gauge_norm2, pixels, bands, weights, table):
                     weights[i]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
     """The queries of a group of pixels: weighted unit signatures over some lights.
 
@@ -344,7 +344,7 @@ def group_queries(scene_ov, ys, xs, bands, lights, weights, queries):
                     _unit(scene_ov, y, x, b, lights[j], norm) * weights[k]
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def group_residuals(scene_ov, group, gauge, noise, floor2, residual, distance):
     """Residual and signature distance of each pixel's match (colorps.residuals).
 

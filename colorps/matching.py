@@ -24,6 +24,8 @@ ratio |S_k| / sigma_k relative to the pixel's best band; a band more than
 from __future__ import annotations
 
 import math
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +86,9 @@ MAX_LIGHTS_TRIED = 8
 #: however the scene is tiled, so a tiled run's first pass matches only them.
 #: The median of 2^16 residuals is within about 0.5 % of the whole image's.
 MODEL_SCALE_PIXELS = 2 ** 16
+#: Groups whose tables and grids are made ahead, in threads, while the group
+#: before them is looked up.
+PREPARED_AHEAD = 2
 
 
 @dataclass(frozen=True)
@@ -221,27 +226,51 @@ def _match_groups(capture: Capture, state: _MatchState, pixels, options: Options
     # One int64 row per pixel: its light-mask words (bit for bit), bands, levels.
     keys, inverse = group_rows(np.column_stack([dropped.view(np.int64), code.astype(np.int64),
                                                  levels.astype(np.int64)]))
-    order = np.argsort(-np.bincount(inverse), kind="stable")
+    sizes = np.bincount(inverse)
+    order = np.argsort(-sizes, kind="stable")
+    groups = []  # (group, bands, levels, band code, dropped-light words, dropped lights)
+    for g in order:
+        mask_words = keys[g, :words].view(np.uint64)
+        lights_dropped = light_masks.lights(mask_words)
+        bands = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
+        if len(bands) * (m - len(lights_dropped) - 1) >= 2:  # else reported by _reasons
+            groups.append((g, bands, tuple(int(v) for v in keys[g, words + 1:][list(bands)]),
+                           keys[g, words], mask_words, lights_dropped))
+
+    def prepare(group):
+        g, bands, group_levels, _, _, lights_dropped = group
+        pick = inverse == g
+        kept = tuple(i for i in range(m) if i not in lights_dropped)
+        return capture.prepare(ys[pick], xs[pick], bands, group_levels, kept,
+                               grid_n=options.grid_n, sample_size=AUTO_N_SAMPLE)
+
     with tqdm(total=len(ys), desc="matching", unit="px", unit_scale=True,
-              disable=not progress, leave=False) as bar:
-        for g in order:
-            mask_words = keys[g, :words].view(np.uint64)
-            lights_dropped = light_masks.lights(mask_words)
-            bands = tuple(k for k in range(n_bands) if int(keys[g, words]) >> k & 1)
-            pick = inverse == g
-            bar.update(int(pick.sum()))
-            if len(bands) * (m - len(lights_dropped) - 1) < 2:
-                continue  # these bands cannot fix a normal: reported by _reasons
-            gy, gx = ys[pick], xs[pick]
-            kept = tuple(i for i in range(m) if i not in lights_dropped)
-            result = capture.match(gy, gx, bands,
-                                   tuple(int(v) for v in keys[g, words + 1:][list(bands)]),
-                                   kept,
-                                   grid_n=options.grid_n, threads=options.threads,
-                                   sample_size=AUTO_N_SAMPLE)
-            state.record(gy, gx, result, bands, keys[g, words], lights_dropped)
+              disable=not progress, leave=False) as bar, \
+            ThreadPoolExecutor(max_workers=PREPARED_AHEAD, initializer=_one_thread) as pool:
+        # The next groups' tables and grids are made in the pool while this
+        # group is looked up (both release the GIL): a grid was built on one
+        # core between two lookups.
+        ready = deque(pool.submit(prepare, group) for group in groups[:PREPARED_AHEAD])
+        bar.update(len(ys) - sum(int(sizes[group[0]]) for group in groups))  # (not matched)
+        for i, (_, bands, _, band_code, mask_words, lights_dropped) in enumerate(groups):
+            prepared = ready.popleft().result()
+            if i + PREPARED_AHEAD < len(groups):
+                ready.append(pool.submit(prepare, groups[i + PREPARED_AHEAD]))
+            result = capture.finish(prepared, threads=options.threads)
+            bar.update(len(prepared.ys))
+            gy, gx = prepared.ys, prepared.xs
+            state.record(gy, gx, result, bands, band_code, lights_dropped)
             state.dropped[gy, gx] = mask_words
             state.brighter[gy, gx] = mask_words  # clipped: brighter than recorded
+
+
+def _one_thread() -> None:
+    """Numba's parallel loops in this thread run in it alone (the setting is per
+    thread): groups made ready beside a lookup's threads would oversubscribe the
+    cores."""
+    import numba
+
+    numba.set_num_threads(1)
 
 
 def _match_clipped(capture: Capture, state: _MatchState, options: Options,

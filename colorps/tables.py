@@ -11,6 +11,7 @@ scores each match in noise units (:mod:`colorps.residuals`).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -25,7 +26,8 @@ from .grid import BucketGrid
 from .noise import NoiseModel
 from .residuals import GaugeOverLights, MatchedGroup, match_residual, table_resolution
 
-__all__ = ["Capture", "GaugeTables", "GroupResult", "group_rows", "nearest"]
+__all__ = ["Capture", "GaugeTables", "GroupResult", "PreparedGroup", "grid_for", "group_rows",
+           "nearest", "nearest_with"]
 
 # ---------------------------------------------------------------- tuning
 #: A table needs at least this many gauge entries; a group with fewer is not matched.
@@ -60,8 +62,6 @@ class GaugeTables:
     """
 
     def __init__(self, max_mib: float = TABLE_CACHE_MIB) -> None:
-        import threading
-
         self.max_bytes = int(max_mib * 2 ** 20)
         self.bytes = 0
         self.reused = 0
@@ -80,10 +80,11 @@ class GaugeTables:
                                  "or other options; use one per capture and settings")
 
     def get(self, key):
-        grid = self._grids.get(key)
-        if grid is not None:
-            self.reused += 1
-        return grid
+        with self._lock:
+            grid = self._grids.get(key)
+            if grid is not None:
+                self.reused += 1
+            return grid
 
     def kept(self, name: str, sources: tuple, make: Callable[[], object]):
         """What ``make()`` returns for ``sources``: made on the first call, and
@@ -118,14 +119,29 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
 
     With ``tables`` the grid of ``key`` is taken from it when it holds one,
     and a grid built is offered to it."""
+    grid = grid_for(table, len(queries), grid_n=grid_n, sample=sample, tables=tables, key=key)
+    return nearest_with(grid, table, queries, threads=threads)
+
+
+def grid_for(table: np.ndarray, n_queries: int, *, grid_n=None, sample=None,
+             tables: GaugeTables | None = None, key=None) -> BucketGrid | None:
+    """The grid :func:`nearest` matches ``n_queries`` queries with: ``tables``'
+    grid of ``key``, else None for fewer than BRUTE_FORCE_PIXELS (brute
+    force), else a grid built (and offered to ``tables``)."""
     grid = None if tables is None else tables.get(key)
-    if grid is None and len(queries) < BRUTE_FORCE_PIXELS:
-        return (_brute_force(table, queries), float(len(queries)),
-                float(len(queries) * len(table)), None)
-    if grid is None:
+    if grid is None and n_queries >= BRUTE_FORCE_PIXELS:
         grid = BucketGrid(table, grid_n, sample=sample if grid_n == "auto" else None)
         if tables is not None:
             tables.keep(key, grid)
+    return grid
+
+
+def nearest_with(grid: BucketGrid | None, table: np.ndarray, queries: np.ndarray, *,
+                 threads=None) -> tuple[np.ndarray, float, float, int | None]:
+    """:func:`nearest` with the grid :func:`grid_for` gave (None: brute force)."""
+    if grid is None:
+        return (_brute_force(table, queries), float(len(queries)),
+                float(len(queries) * len(table)), None)
     rows, _, st = grid.query(queries, threads=threads, return_stats=True)
     return (rows, float(st.buckets_per_query.sum()), float(st.tests_per_query.sum()),
             grid.n)
@@ -259,6 +275,7 @@ class Capture:
     tables: GaugeTables | None = None
     _light_sets: OrderedDict = field(default_factory=OrderedDict)
     _gauge_variance: np.ndarray | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
     def images(self) -> int:
@@ -289,6 +306,10 @@ class Capture:
     def light_set(self, lights: tuple[int, ...]) -> _LightSet:
         """The gauge restricted to ``lights``, kept while the light sets used last
         fit in LIGHT_SET_CACHE_MIB (the set of every light always stays)."""
+        with self._lock:  # (groups are prepared in threads: colorps.matching)
+            return self._light_set(lights)
+
+    def _light_set(self, lights: tuple[int, ...]) -> _LightSet:
         if lights in self._light_sets:
             self._light_sets.move_to_end(lights)
         else:
@@ -346,40 +367,81 @@ class Capture:
               levels: tuple[int, ...], lights: tuple[int, ...], *, grid_n=None,
               threads=None, sample_size: int = AUTO_N_SAMPLE) -> GroupResult:
         """Match pixels (ys, xs) on ``bands`` weighted 2^levels over ``lights``."""
+        return self.finish(self.prepare(ys, xs, bands, levels, lights, grid_n=grid_n,
+                                        sample_size=sample_size), threads=threads)
+
+    def prepare(self, ys: np.ndarray, xs: np.ndarray, bands: tuple[int, ...],
+                levels: tuple[int, ...], lights: tuple[int, ...], *, grid_n=None,
+                sample_size: int = AUTO_N_SAMPLE) -> PreparedGroup:
+        """The first half of :meth:`match`: the group's table, queries and grid
+        (None: too few pixels, matched by brute force; or too few table entries).
+
+        It may run in another thread while :meth:`finish` matches the group
+        before (:func:`colorps.matching.first_match` does so); only it makes
+        light sets and grids."""
         t0 = time.perf_counter()
         gauge = self.light_set(lights)
         band_list = list(bands)
         table_px = gauge.usable[..., band_list].all(axis=-1)
-        scale = np.exp2(np.array(levels, dtype=np.float32))[:, None]
-        n_rows = len(ys)
+        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
         if table_px.sum() < MIN_TABLE_ENTRIES:
-            nothing = np.full(n_rows, np.nan, np.float32)
-            return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
-                               0.0, time.perf_counter() - t0, 0.0)
+            return PreparedGroup(ys, xs, bands, lights, gauge, None, None, None, None,
+                                 time.perf_counter() - t0)
+        scale = np.exp2(np.array(levels, dtype=np.float32))
         band_index, light_index = np.array(bands, np.int64), np.array(lights, np.int64)
         table_rows = np.flatnonzero(table_px)
         table = np.empty((len(table_rows), len(bands) * len(lights)), dtype=np.float32)
         _pixel_kernels.group_table(self.gauge_ov, light_index, gauge.norm2, table_rows,
-                                   band_index, scale[:, 0], table)
-        ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
-        queries = np.empty((n_rows, len(bands) * len(lights)), dtype=np.float32)
-        _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index,
-                                     scale[:, 0], queries)
-        sample = queries[:: max(1, n_rows // sample_size)]
-        t_grid = time.perf_counter() - t0
+                                   band_index, scale, table)
+        queries = np.empty((len(ys), len(bands) * len(lights)), dtype=np.float32)
+        _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index, scale,
+                                     queries)
+        grid = grid_for(table, len(ys), grid_n=grid_n,
+                        sample=queries[:: max(1, len(ys) // sample_size)],
+                        tables=self.tables, key=(bands, levels, lights, grid_n))
+        return PreparedGroup(ys, xs, bands, lights, gauge, table, table_rows, queries, grid,
+                             time.perf_counter() - t0)
+
+    def finish(self, group: PreparedGroup, *, threads=None) -> GroupResult:
+        """The second half of :meth:`match`: the group's nearest entries, scored."""
+        n_rows = len(group.ys)
+        if group.table is None:
+            nothing = np.full(n_rows, np.nan, np.float32)
+            return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
+                               0.0, group.seconds, 0.0)
         t0 = time.perf_counter()
-        found, b_sum, d_sum, n = nearest(table, queries, grid_n=grid_n, threads=threads,
-                                         sample=sample, tables=self.tables,
-                                         key=(bands, levels, lights, grid_n))
-        rows = table_rows[found]
+        found, b_sum, d_sum, grid_n = nearest_with(group.grid, group.table, group.queries,
+                                                   threads=threads)
+        rows = group.table_rows[found]
         t_lookup = time.perf_counter() - t0
+        gauge = group.gauge
         residual, distance = match_residual(
-            self.scene_ov, MatchedGroup(ys, xs, band_index, light_index, rows),
+            self.scene_ov, MatchedGroup(group.ys, group.xs, np.array(group.bands, np.int64),
+                                        gauge.lights, rows),
             GaugeOverLights(self.gauge_ov, gauge.norm2.reshape(-1, self.bands),
                             gauge.variance.reshape(-1, self.bands), gauge.resolution_at(rows)),
             self.model)
-        return GroupResult(rows, residual, distance, int(table_px.sum()), n, b_sum, d_sum,
-                           t_grid, t_lookup)
+        return GroupResult(rows, residual, distance, len(group.table), grid_n, b_sum, d_sum,
+                           group.seconds, t_lookup)
+
+
+@dataclass(frozen=True)
+class PreparedGroup:
+    """A group made ready to match (:meth:`Capture.prepare`): its pixels, bands
+    and lights, the gauge over those lights, its table (None: fewer than
+    MIN_TABLE_ENTRIES entries), their gauge pixels, the queries, the grid
+    (None: brute force) and the seconds that took."""
+
+    ys: np.ndarray
+    xs: np.ndarray
+    bands: tuple
+    lights: tuple
+    gauge: _LightSet
+    table: np.ndarray | None
+    table_rows: np.ndarray | None
+    queries: np.ndarray | None
+    grid: BucketGrid | None
+    seconds: float
 
 
 def group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

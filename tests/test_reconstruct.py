@@ -271,3 +271,26 @@ def test_reconstruct_runs_on_small_pages_and_puts_the_setting_back(monkeypatch):
         assert _huge_pages_asked()
     finally:
         _set_madvise_hugepage(before)
+
+
+def test_groups_prepared_in_threads_match_as_brute_force_does(monkeypatch):
+    """Grids are built in threads, ahead of the lookups: the matches are still
+    brute force's over each band-weight group's table, pixel for pixel."""
+    import colorps.tables
+
+    phase = 2 * np.pi * np.arange(8) / 8  # a coloured light each: bands of unlike SNR
+    hue = 0.5 + 0.5 * np.cos(phase[:, None] - np.array([0.0, 2.0, 4.0]) * np.pi / 3)
+    lighting = synth.ring_lights(8, 40, 0.05 + 0.95 * hue)
+    scene = synth.smiley_surface(96)
+    ball = synth.sphere_surface(72, 32)
+    stacks = synth.render(scene, lighting, noise=0.01, seed=1), \
+        synth.render(ball, lighting, noise=0.01, seed=2)
+    gauge = Gauge.from_sphere((72, 72), 35.5, 35.5, 32)
+    result = reconstruct(*stacks, gauge, mask=scene.mask, refine="none")
+    assert sum(g.grid_n is not None for g in result.stats.grids) >= 3  # grids of groups
+    monkeypatch.setattr(colorps.tables, "BRUTE_FORCE_PIXELS", 10 ** 9)
+    brute = reconstruct(*stacks, gauge, mask=scene.mask, refine="none")
+    assert all(g.grid_n is None for g in brute.stats.grids)
+    np.testing.assert_array_equal(result.solved, brute.solved)
+    np.testing.assert_array_equal(result.normals, brute.normals)
+    np.testing.assert_array_equal(result.quality, brute.quality)
