@@ -26,8 +26,7 @@ from .grid import BucketGrid
 from .noise import NoiseModel
 from .residuals import GaugeOverLights, MatchedGroup, match_residual, table_resolution
 
-__all__ = ["Capture", "GaugeTables", "GroupResult", "PreparedGroup", "grid_for", "group_rows",
-           "nearest", "nearest_with"]
+__all__ = ["Capture", "GaugeTables", "GroupResult", "PreparedGroup", "group_rows", "nearest"]
 
 # ---------------------------------------------------------------- tuning
 #: A table needs at least this many gauge entries; a group with fewer is not matched.
@@ -119,11 +118,11 @@ def nearest(table: np.ndarray, queries: np.ndarray, *, grid_n=None, threads=None
 
     With ``tables`` the grid of ``key`` is taken from it when it holds one,
     and a grid built is offered to it."""
-    grid = grid_for(table, len(queries), grid_n=grid_n, sample=sample, tables=tables, key=key)
-    return nearest_with(grid, table, queries, threads=threads)
+    grid = _grid_for(table, len(queries), grid_n=grid_n, sample=sample, tables=tables, key=key)
+    return _nearest_with(grid, table, queries, threads=threads)
 
 
-def grid_for(table: np.ndarray, n_queries: int, *, grid_n=None, sample=None,
+def _grid_for(table: np.ndarray, n_queries: int, *, grid_n=None, sample=None,
              tables: GaugeTables | None = None, key=None) -> BucketGrid | None:
     """The grid :func:`nearest` matches ``n_queries`` queries with: ``tables``'
     grid of ``key``, else None for fewer than BRUTE_FORCE_PIXELS (brute
@@ -136,9 +135,9 @@ def grid_for(table: np.ndarray, n_queries: int, *, grid_n=None, sample=None,
     return grid
 
 
-def nearest_with(grid: BucketGrid | None, table: np.ndarray, queries: np.ndarray, *,
+def _nearest_with(grid: BucketGrid | None, table: np.ndarray, queries: np.ndarray, *,
                  threads=None) -> tuple[np.ndarray, float, float, int | None]:
-    """:func:`nearest` with the grid :func:`grid_for` gave (None: brute force)."""
+    """:func:`nearest` with the grid :func:`_grid_for` gave (None: brute force)."""
     if grid is None:
         return (_brute_force(table, queries), float(len(queries)),
                 float(len(queries) * len(table)), None)
@@ -396,7 +395,7 @@ class Capture:
         queries = np.empty((len(ys), len(bands) * len(lights)), dtype=np.float32)
         _pixel_kernels.group_queries(self.scene_ov, ys, xs, band_index, light_index, scale,
                                      queries)
-        grid = grid_for(table, len(ys), grid_n=grid_n,
+        grid = _grid_for(table, len(ys), grid_n=grid_n,
                         sample=queries[:: max(1, len(ys) // sample_size)],
                         tables=self.tables, key=(bands, levels, lights, grid_n))
         return PreparedGroup(ys, xs, bands, lights, gauge, table, table_rows, queries, grid,
@@ -410,7 +409,7 @@ class Capture:
             return GroupResult(np.full(n_rows, -1, np.int64), nothing, nothing, 0, None, 0.0,
                                0.0, group.seconds, 0.0)
         t0 = time.perf_counter()
-        found, b_sum, d_sum, grid_n = nearest_with(group.grid, group.table, group.queries,
+        found, b_sum, d_sum, grid_n = _nearest_with(group.grid, group.table, group.queries,
                                                    threads=threads)
         rows = group.table_rows[found]
         t_lookup = time.perf_counter() - t0
