@@ -460,26 +460,67 @@ def light_residuals(scene_ov, gauge_ov, lights, bands_used, extra_variance, nois
             out[p, i] *= scale
 
 
+@njit(cache=True, inline="always")
+def _band_snr(scene_ov, y, x, b, read2, gain, pixel_kind, levels, table):
+    """|S_b| / sigma_b of pixel (y, x) (see band_snr)."""
+    m = scene_ov.shape[3]
+    total = 0.0
+    variance = 0.0
+    for i in range(m):
+        v = scene_ov[y, x, b, i]
+        total += np.float64(v) * np.float64(v)
+        variance += _variance(v, read2, gain, pixel_kind, levels, table)
+    variance = np.float64(np.float32(variance / m))
+    return np.sqrt(total) / np.sqrt(max(variance, 1e-30))
+
+
 @njit(cache=True, parallel=True)
 def band_snr(scene_ov, ys, xs, valid, read2, gain, pixel_kind, levels, table, out):
     """|S_k| / sigma_k of each band of pixels (ys, xs), sigma_k^2 the mean variance
     of its measurements (float32-rounded, as mean_variance gives it); 0 where
     ``valid`` (P, B) is false. scene_ov (H, W, B, m) float32; out (P, B) float64."""
+    n_bands = scene_ov.shape[2]
+    for p in prange(ys.size):
+        for b in range(n_bands):
+            out[p, b] = _band_snr(scene_ov, ys[p], xs[p], b, read2, gain, pixel_kind, levels,
+                                  table) if valid[p, b] else 0.0
+
+
+@njit(cache=True, parallel=True)
+def band_levels(scene_ov, ys, xs, valid, read2, gain, pixel_kind, levels, table, drop_level,
+                out_valid, out_levels):
+    """The bands each pixel (ys, xs) is matched on and their weight levels, in one
+    pass (colorps.matching.first_match's policy).
+
+    A band's level is round(log2(snr / the pixel's best snr)), half-way cases
+    to even, clipped to ``drop_level`` .. 0 (``drop_level`` where its snr is 0;
+    snr as band_snr gives it). Bands above ``drop_level`` are kept when they
+    still fix a normal (kept bands x (lights - 1) >= 2), else every valid
+    band is; kept bands get at least ``drop_level + 1``, the others 0.
+    valid, out_valid (P, B) bool; out_levels (P, B) int8.
+    """
     n_bands, m = scene_ov.shape[2], scene_ov.shape[3]
     for p in prange(ys.size):
-        y, x = ys[p], xs[p]
+        snr = np.zeros(n_bands)
+        best = 0.0
         for b in range(n_bands):
-            if not valid[p, b]:
-                out[p, b] = 0.0
-                continue
-            total = 0.0
-            variance = 0.0
-            for i in range(m):
-                v = scene_ov[y, x, b, i]
-                total += np.float64(v) * np.float64(v)
-                variance += _variance(v, read2, gain, pixel_kind, levels, table)
-            variance = np.float64(np.float32(variance / m))
-            out[p, b] = np.sqrt(total) / np.sqrt(max(variance, 1e-30))
+            if valid[p, b]:
+                snr[b] = _band_snr(scene_ov, ys[p], xs[p], b, read2, gain, pixel_kind, levels,
+                                   table)
+                best = max(best, snr[b])
+        n_kept = 0
+        for b in range(n_bands):
+            level = drop_level
+            if best > 0.0 and snr[b] > 0.0:
+                level = min(max(np.rint(np.log2(snr[b] / best)), drop_level), 0.0)
+            out_levels[p, b] = np.int8(level)
+            if valid[p, b] and level > drop_level:
+                n_kept += 1
+        fixes_normal = n_kept * (m - 1) >= 2
+        for b in range(n_bands):
+            keep = valid[p, b] and (out_levels[p, b] > drop_level or not fixes_normal)
+            out_valid[p, b] = keep
+            out_levels[p, b] = max(out_levels[p, b], drop_level + 1) if keep else 0
 
 
 @njit(cache=True, parallel=True)

@@ -43,6 +43,7 @@ __all__ = [
     "MatchGroup",
     "Matches",
     "band_snr",
+    "band_weights",
     "first_match",
     "match_pixels",
     "measured_model_scale",
@@ -191,11 +192,7 @@ def first_match(capture: Capture, mask: np.ndarray, options: Options,
     valid = capture.scene_valid[ys, xs]
     levels = np.zeros(valid.shape, dtype=np.int8)
     if options.band_weights and n_bands > 1:
-        levels = weight_levels(band_snr(capture.scene_ov, ys, xs, valid, capture.model))
-        kept = valid & (levels > DROP_LEVEL)
-        fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
-        valid = np.where(fixes_normal[:, None], kept, valid)
-        levels = np.where(valid, np.maximum(levels, DROP_LEVEL + 1), 0).astype(np.int8)
+        valid, levels = band_weights(capture.scene_ov, ys, xs, valid, capture.model)
     dropped = light_masks.empty((len(ys),), m)
     refit = np.zeros(len(ys), dtype=bool)
     if options.light_subsets:
@@ -237,9 +234,14 @@ def _match_groups(capture: Capture, state: _MatchState, pixels, options: Options
             groups.append((g, bands, tuple(int(v) for v in keys[g, words + 1:][list(bands)]),
                            keys[g, words], mask_words, lights_dropped))
 
+    # Each group's pixels, in their tile order: one stable sort, not a pass per group.
+    by_group = np.argsort(inverse.astype(np.uint16) if len(sizes) < 2 ** 16 else inverse,
+                          kind="stable")
+    ends = np.cumsum(sizes)
+
     def prepare(group):
         g, bands, group_levels, _, _, lights_dropped = group
-        pick = inverse == g
+        pick = by_group[ends[g] - sizes[g]:ends[g]]
         kept = tuple(i for i in range(m) if i not in lights_dropped)
         return capture.prepare(ys[pick], xs[pick], bands, group_levels, kept,
                                grid_n=options.grid_n, sample_size=AUTO_N_SAMPLE)
@@ -553,6 +555,37 @@ def weight_levels(snr: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore"):
         levels = np.rint(np.log2(rel))
     return np.clip(levels, DROP_LEVEL, 0).astype(np.int8)
+
+
+def band_weights(scene_ov: np.ndarray, ys: np.ndarray, xs: np.ndarray, valid: np.ndarray,
+                 model: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
+    """The bands pixels (ys, xs) are matched on and their weight levels.
+
+    Each band's level is :func:`weight_levels` of its :func:`band_snr`. Bands
+    at DROP_LEVEL or below are left out where the others still fix a normal
+    (bands x (lights - 1) >= 2); the bands kept get at least DROP_LEVEL + 1,
+    the others 0. One compiled pass (the numpy steps took 0.35 s at 4 MP).
+
+    Parameters
+    ----------
+    scene_ov : (H, W, B, m) ndarray of float32
+    ys, xs : (P,) ndarray of int
+    valid : (P, B) ndarray of bool
+        Usable bands.
+    model : NoiseModel
+
+    Returns
+    -------
+    valid : (P, B) ndarray of bool
+        The bands kept.
+    levels : (P, B) ndarray of int8
+    """
+    kept = np.empty(valid.shape, dtype=bool)
+    levels = np.empty(valid.shape, dtype=np.int8)
+    _pixel_kernels.band_levels(scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
+                               np.ascontiguousarray(valid, dtype=bool), *model.kernel_args(),
+                               DROP_LEVEL, kept, levels)
+    return kept, levels
 
 
 def band_snr(scene_ov: np.ndarray, ys: np.ndarray, xs: np.ndarray, valid: np.ndarray,

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from colorps import Gauge, GaugeError, angular_error, find_sphere, reconstruct, synth
 from colorps.errors import GaugeWarning
 from colorps.finishes import Gloss
-from colorps.matching import band_snr, weight_levels
+from colorps.matching import DROP_LEVEL, band_snr, band_weights, weight_levels
 from colorps.tables import Capture
 from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
 from colorps.signatures import compute_signatures
@@ -100,6 +100,28 @@ def test_band_snr_is_norm_over_model_sigma(pixel_type):
     sigma2 = (model.sigma(ov[ys, xs]).astype(np.float64) ** 2).mean(axis=-1)
     expected = np.where(valid, np.linalg.norm(picked, axis=-1) / np.sqrt(sigma2), 0.0)
     np.testing.assert_allclose(got, expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("m", [2, 3, 8])
+def test_band_weights_keep_the_bands_that_fix_a_normal(m):
+    """The one-pass band choice against its definition, step by step in numpy:
+    levels of the SNR, bands at DROP_LEVEL left out where the rest still fix a
+    normal (bands x (lights - 1) >= 2), the kept ones at DROP_LEVEL + 1 or more."""
+    rng = np.random.default_rng(m)
+    ov = rng.uniform(0.0, 1.0, (30, 40, 3, m)).astype(np.float32)
+    ov *= rng.choice([1.0, 0.3, 0.05, 0.005], size=(30, 40, 3, 1)).astype(np.float32)
+    ys, xs = np.nonzero(rng.uniform(size=(30, 40)) > 0.2)
+    valid = rng.uniform(size=(len(ys), 3)) > 0.15
+    model = NoiseModel(read=0.01, gain=0.002, pixel_type="half")
+    levels = weight_levels(band_snr(ov, ys, xs, valid, model))
+    kept = valid & (levels > DROP_LEVEL)
+    fixes_normal = kept.sum(axis=-1) * (m - 1) >= 2
+    expected_valid = np.where(fixes_normal[:, None], kept, valid)
+    expected = np.where(expected_valid, np.maximum(levels, DROP_LEVEL + 1), 0)
+    got_valid, got = band_weights(ov, ys, xs, valid, model)
+    np.testing.assert_array_equal(got_valid, expected_valid)
+    np.testing.assert_array_equal(got, expected)
+    assert got.dtype == np.int8 and (got_valid != valid).any() and (got < 0).any()
 
 
 @settings(max_examples=15, deadline=None)
