@@ -18,7 +18,8 @@ the exact minimiser of the **weighted signature distance** ::
 found by the bucket grid (or, for a group of a few pixels, by brute force:
 both exact). The weights are powers of two of each band's signal-to-noise
 ratio |S_k| / sigma_k relative to the pixel's best band; a band more than
-``DROP_LEVEL`` octaves below is dropped when the others fix the normal.
+``DROP_LEVEL`` octaves below is dropped when the others fix the normal
+(:mod:`colorps.band_weights`).
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _pixel_kernels, light_masks
+from . import light_masks
 from ._config import AUTO_N_SAMPLE, MIN_LIGHTS
+from .band_weights import band_weights
 from .clipped_gauge import rematch_near_clipped
-from .noise import NoiseModel
 from .options import Options
 from .residuals import light_residuals
 from .shadows import solve_shadowed
@@ -42,20 +43,13 @@ from .tables import Capture, GroupResult, group_rows
 __all__ = [
     "MatchGroup",
     "Matches",
-    "band_snr",
-    "band_weights",
     "first_match",
     "match_pixels",
     "measured_model_scale",
     "model_scale_pixels",
-    "weight_levels",
 ]
 
 # ---------------------------------------------------------------- tuning
-#: Band weights are 2^level, level = round(log2(relative SNR)) in DROP_LEVEL + 1 .. 0;
-#: a band at DROP_LEVEL or below is dropped (it carries under 1/64 of the
-#: information of the best band).
-DROP_LEVEL = -3
 #: Side (pixels) of the tiles in which pixels are looked up. Neighbouring pixels
 #: look up the same gauge entries, which then stay in the CPU's caches: colour
 #: m = 30 lookups are ~18 % faster than row by row (docs/benchmarks.md).
@@ -143,7 +137,7 @@ def match_pixels(capture: Capture, mask: np.ndarray, options: Options, progress:
     Pixels with every band usable are matched on the full signature, the
     others on the bands they have when those still fix a normal (bands x
     (m - 1) >= 2). In colour mode with ``band_weights`` each band is weighted
-    by its signal-to-noise ratio (:func:`colorps.matching.weight_levels`).
+    by its signal-to-noise ratio (:func:`colorps.band_weights.weight_levels`).
     With ``light_subsets``, pixels matched next to the gauge's clipped
     patches are matched again without those lights
     (:func:`colorps.clipped_gauge.rematch_near_clipped`, in
@@ -532,80 +526,3 @@ def _tile_order(pixels: np.ndarray, tile: int = LOOKUP_TILE
         key = key.astype(np.uint16)  # numpy sorts small integers by radix sort
     order = np.argsort(key, kind="stable")
     return ys[order], xs[order]
-
-
-def weight_levels(snr: np.ndarray) -> np.ndarray:
-    """Per-band weight levels (int8; DROP_LEVEL or below: drop) of pixels.
-
-    Parameters
-    ----------
-    snr : (P, B) ndarray
-        Each band's signal-to-noise ratio |S_k| / sigma_k (0 where the band is
-        unusable; :func:`band_snr`).
-
-    Returns
-    -------
-    (P, B) ndarray of int8
-        round(log2(snr_k / max_j snr_j)) clipped to DROP_LEVEL .. 0 (half-way
-        cases to even); DROP_LEVEL where snr_k is 0.
-    """
-    snr = np.asarray(snr, dtype=np.float64)
-    best = snr.max(axis=-1, keepdims=True)
-    rel = np.divide(snr, best, out=np.zeros_like(snr), where=best > 0)
-    with np.errstate(divide="ignore"):
-        levels = np.rint(np.log2(rel))
-    return np.clip(levels, DROP_LEVEL, 0).astype(np.int8)
-
-
-def band_weights(scene_ov: np.ndarray, ys: np.ndarray, xs: np.ndarray, valid: np.ndarray,
-                 model: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
-    """The bands pixels (ys, xs) are matched on and their weight levels.
-
-    Each band's level is :func:`weight_levels` of its :func:`band_snr`. Bands
-    at DROP_LEVEL or below are left out where the others still fix a normal
-    (bands x (lights - 1) >= 2); the bands kept get at least DROP_LEVEL + 1,
-    the others 0. One compiled pass (the numpy steps took 0.35 s at 4 MP).
-
-    Parameters
-    ----------
-    scene_ov : (H, W, B, m) ndarray of float32
-    ys, xs : (P,) ndarray of int
-    valid : (P, B) ndarray of bool
-        Usable bands.
-    model : NoiseModel
-
-    Returns
-    -------
-    valid : (P, B) ndarray of bool
-        The bands kept.
-    levels : (P, B) ndarray of int8
-    """
-    kept = np.empty(valid.shape, dtype=bool)
-    levels = np.empty(valid.shape, dtype=np.int8)
-    _pixel_kernels.band_levels(scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
-                               np.ascontiguousarray(valid, dtype=bool), *model.kernel_args(),
-                               DROP_LEVEL, kept, levels)
-    return kept, levels
-
-
-def band_snr(scene_ov: np.ndarray, ys: np.ndarray, xs: np.ndarray, valid: np.ndarray,
-             model: NoiseModel) -> np.ndarray:
-    """Signal-to-noise ratio |S_k| / sigma_k of each band of pixels (ys, xs).
-
-    Parameters
-    ----------
-    scene_ov : (H, W, B, m) ndarray of float32
-    ys, xs : (P,) ndarray of int
-    valid : (P, B) ndarray of bool
-        Usable bands (the others get 0).
-    model : NoiseModel
-        sigma_k^2 is the mean over the m measurements of the model's variance.
-
-    Returns
-    -------
-    (P, B) ndarray of float64
-    """
-    out = np.empty(valid.shape, dtype=np.float64)
-    _pixel_kernels.band_snr(scene_ov, np.asarray(ys, np.int64), np.asarray(xs, np.int64),
-                            np.ascontiguousarray(valid, dtype=bool), *model.kernel_args(), out)
-    return out

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from colorps import Gauge, GaugeError, angular_error, find_sphere, reconstruct, synth
 from colorps.errors import GaugeWarning
 from colorps.finishes import Gloss
-from colorps.matching import DROP_LEVEL, band_snr, band_weights, weight_levels
+from colorps.band_weights import DROP_LEVEL, band_snr, band_weights, weight_levels
 from colorps.tables import Capture
 from colorps.noise import NoiseModel, estimate_noise, quantisation_sigma
 from colorps.signatures import compute_signatures
