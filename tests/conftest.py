@@ -1,9 +1,17 @@
+import os
 import sys
 
-import numpy as np
-import pytest
+if "PYTEST_XDIST_WORKER" in os.environ:  # (before numba is imported)
+    # Test processes share the cores (pyproject's -n auto): numba's threads wait
+    # asleep, not spinning, and each process keeps at least 2 (races still show).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    os.environ.setdefault("NUMBA_NUM_THREADS", str(max(2, (os.cpu_count() or 2) // _workers)))
 
-from colorps import compute_signatures, synth
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from colorps import compute_signatures, synth  # noqa: E402
 
 
 def sphere_table(m, theta, colour, radius=40, seed=1):
