@@ -490,7 +490,7 @@ def band_snr(scene_ov, ys, xs, valid, read2, gain, pixel_kind, levels, table, ou
 def band_levels(scene_ov, ys, xs, valid, read2, gain, pixel_kind, levels, table, drop_level,
                 out_valid, out_levels):
     """The bands each pixel (ys, xs) is matched on and their weight levels, in one
-    pass (colorps.matching.first_match's policy).
+    pass (the policy of colorps.band_weights.band_weights).
 
     A band's level is round(log2(snr / the pixel's best snr)), half-way cases
     to even, clipped to ``drop_level`` .. 0 (``drop_level`` where its snr is 0;
